@@ -1,0 +1,43 @@
+/* sm_meshio: reading mesh files and Draco bitstreams, writing Draco.
+ *
+ * Contract
+ *   Readers return a raw mesh (not validated, not cleaned: run sm_mesh_clean next) owned
+ *   by the caller, with to_input NULL (identity): vertex i is the i-th vertex of the file or
+ *   the i-th decoded Draco point. Counts are checked against `lim` (NULL = defaults) before
+ *   the mesh is allocated. Non-triangle polygons are fan-triangulated. `.gz` files are
+ *   decompressed in memory first. Every C++ exception is caught inside the adapters and
+ *   becomes an error code; nothing is logged (OpenMesh's own log output is silenced).
+ *   Thread-safe: no shared state between calls.
+ *   Errors: SM_EIO (cannot open/read), SM_EFORMAT (malformed, truncated or unknown format),
+ *   SM_EUNSUPPORTED (Draco point cloud, mesh without positions), SM_ELIMIT, SM_ENOMEM.
+ */
+#ifndef SM_MESHIO_H
+#define SM_MESHIO_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#include "sm_error.h"
+#include "sm_mesh.h"
+
+/* Reads OFF, OBJ, PLY (ascii/binary), STL (ascii/binary) or DRC, chosen by extension
+ * (case-insensitive; an extra ".gz" means gzip). */
+int sm_mesh_read_file(const char *path, const sm_limits *lim, sm_mesh **out, sm_error *err);
+
+/* Decodes a Draco mesh bitstream (versions 1.x and 2.x, sequential or edgebreaker).
+ * buf is borrowed. Edgebreaker reorders (and at non-manifold vertices duplicates) points:
+ * the result's vertices are the decoded points in decoded order. */
+int sm_draco_decode(const uint8_t *buf, size_t len, const sm_limits *lim, sm_mesh **out,
+                    sm_error *err);
+
+/* Encodes m with the sequential connectivity method, so vertex and face order survive a
+ * decode. quant_bits = 0 stores positions as raw float32 (lossless up to float rounding);
+ * 1..30 quantizes. *buf is malloc'd and owned by the caller (free()). */
+int sm_draco_encode(const sm_mesh *m, int quant_bits, uint8_t **buf, size_t *len,
+                    sm_error *err);
+
+/* Reads a whole file into a malloc'd buffer (at most max_bytes, else SM_ELIMIT). */
+int sm_read_file_bytes(const char *path, size_t max_bytes, uint8_t **buf, size_t *len,
+                       sm_error *err);
+
+#endif
