@@ -63,6 +63,11 @@ void sm_basis_opts_default(sm_basis_opts *o, int kind, int k);
 int sm_basis_compute(const sm_mesh *m, const sm_basis_opts *o, sm_basis **out, sm_error *err);
 void sm_basis_destroy(sm_basis *b);
 
+/* Kernel size of an ascending spectrum ev[0..nev): the index of the largest ratio jump
+ * (at least 1e4) among leading eigenvalues negligible against |ev[nev-1]|; `expected` (6
+ * per component for the elastic basis) bounds the search window. 0 if no clear gap. */
+int sm_basis_kernel_size(const double *ev, int nev, int expected);
+
 /* XXH3-64 of nv, nf, V and F (bit patterns): ties a stored basis to its mesh. */
 uint64_t sm_mesh_hash(const sm_mesh *m);
 

@@ -53,11 +53,11 @@ int sm_triplets_add(sm_triplets *t, int32_t i, int32_t j, double v) {
   return SM_OK;
 }
 
-int sm_triplets_add_block3(sm_triplets *t, int32_t I, int32_t J, const double B[9]) {
+int sm_triplets_add_block3(sm_triplets *t, int32_t bi, int32_t bj, const double B[9]) {
   for (int a = 0; a < 3; a++)
     for (int b = 0; b < 3; b++) {
-      int32_t i = 3 * I + a, j = 3 * J + b;
-      if (I == J && j > i) continue;
+      int32_t i = 3 * bi + a, j = 3 * bj + b;
+      if (bi == bj && j > i) continue;
       if (sm_triplets_add(t, i, j, B[3 * a + b])) return SM_ENOMEM;
     }
   return SM_OK;

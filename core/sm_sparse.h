@@ -33,11 +33,11 @@ int sm_triplets_init(sm_triplets *t, int32_t n, int64_t cap_hint);
 void sm_triplets_free(sm_triplets *t);
 /* Appends one entry (mirrored to the lower triangle). SM_ENOMEM on growth failure. */
 int sm_triplets_add(sm_triplets *t, int32_t i, int32_t j, double v);
-/* Adds a 3x3 block B (row-major) at block position (I, J) (rows 3I.., cols 3J..);
- * entries that fall in the strict upper triangle are skipped when I == J, and all of
- * them are mirrored when I < J, so callers can add every block of a symmetric element
+/* Adds a 3x3 block B (row-major) at block position (bi, bj) (rows 3bi.., cols 3bj..);
+ * entries that fall in the strict upper triangle are skipped when bi == bj, and all of
+ * them are mirrored when bi < bj, so callers can add every block of a symmetric element
  * matrix exactly once per unordered pair. */
-int sm_triplets_add_block3(sm_triplets *t, int32_t I, int32_t J, const double B[9]);
+int sm_triplets_add_block3(sm_triplets *t, int32_t bi, int32_t bj, const double B[9]);
 
 int sm_triplets_to_csc(const sm_triplets *t, sm_csc **out, sm_error *err);
 void sm_csc_destroy(sm_csc *a);

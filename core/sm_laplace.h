@@ -1,0 +1,21 @@
+/* sm_laplace: the cotangent Laplacian (stiffness) of a triangle mesh.
+ *
+ * Contract
+ *   W_ij = -(cot a_ij + cot b_ij)/2 for each edge, rows summing to 0, symmetric PSD.
+ *   Returned as the lower triangle in a new sm_csc owned by the caller. The mesh is
+ *   borrowed. Faces of zero area contribute nothing (clean the mesh first).
+ */
+#ifndef SM_LAPLACE_H
+#define SM_LAPLACE_H
+
+#include "sm_error.h"
+#include "sm_mesh.h"
+#include "sm_sparse.h"
+
+int sm_cotan_stiffness(const sm_mesh *m, sm_csc **W, sm_error *err);
+
+/* Adds the cotan weights cot(angle at corner o)/2 of face (a, b, c) to w[0..2], w[c] being
+ * the weight of the edge opposite corner c. Shared with the thin-shell membrane term. */
+void sm_face_cotan_weights(const double *a, const double *b, const double *c, double w[3]);
+
+#endif
