@@ -1,0 +1,190 @@
+/* Spectral bases: LB spectrum of a sphere against the analytic one, elastic kernel
+ * detection, Gram factor, and invariance under rigid motion, scaling and permutation. */
+#include <string.h>
+
+#include "sm_basis.h"
+#include "sm_mesh.h"
+#include "sm_test.h"
+#include "sm_testmesh.h"
+
+static sm_basis *basis_of(sm_mesh *m, int kind, int k, double eta) {
+  sm_basis_opts o;
+  sm_error err;
+  sm_basis *b = NULL;
+  sm_basis_opts_default(&o, kind, k);
+  if (eta > 0) o.eta = eta;
+  REQUIRE(sm_mesh_normalize(m, &err) == 0);
+  int rc = sm_basis_compute(m, &o, &b, &err);
+  if (rc) fprintf(stderr, "basis: %s\n", err.msg);
+  REQUIRE(rc == 0 && b);
+  return b;
+}
+
+/* On the unit-area sphere, lambda_l = 4 pi l (l + 1) with multiplicity 2l + 1. */
+static void test_lb_sphere(void) {
+  sm_mesh *m = tm_icosphere(4); /* 2562 vertices */
+  sm_basis *b = basis_of(m, SM_BASIS_LB, 36, 0);
+  CHECK(fabs(b->evals[0]) < 1e-8);
+  int i = 0;
+  for (int l = 0; l <= 5; l++) {
+    double exact = 4 * M_PI * l * (l + 1);
+    for (int r = 0; r < 2 * l + 1; r++, i++) {
+      /* The discretization error of the cotan Laplacian on this mesh is O(h^2): ~1%. */
+      CHECK_MSG(fabs(b->evals[i] - exact) <= 0.02 * exact + 1e-8, "l=%d lambda=%g exact=%g",
+                l, b->evals[i], exact);
+    }
+    /* Multiplicity: the group is tight compared with the gap to the next level. */
+    if (l > 0) {
+      double lo = b->evals[i - (2 * l + 1)], hi = b->evals[i - 1];
+      CHECK_MSG(hi - lo < 0.1 * 8 * M_PI * (l + 1), "l=%d spread %g", l, hi - lo);
+    }
+  }
+  /* M-orthonormal: Phi^T M Phi = I. */
+  double worst = 0;
+  for (int p = 0; p < b->k; p++)
+    for (int q = 0; q <= p; q++) {
+      double s = 0;
+      for (int v = 0; v < b->n; v++) s += b->mass[v] * b->phi[(size_t)p * b->n + v] * b->phi[(size_t)q * b->n + v];
+      worst = fmax(worst, fabs(s - (p == q)));
+    }
+  CHECK_MSG(worst < 1e-8, "orthonormality error %g", worst);
+  CHECK(b->gram_L == NULL);
+  sm_basis_destroy(b);
+  sm_mesh_destroy(m);
+}
+
+static double gram_error(const sm_basis *b) {
+  double worst = 0, scale = 0;
+  for (int p = 0; p < b->k; p++)
+    for (int q = 0; q <= p; q++) {
+      double s = 0, ll = 0;
+      for (int v = 0; v < b->n; v++)
+        s += b->mass[v] * b->phi[(size_t)p * b->n + v] * b->phi[(size_t)q * b->n + v];
+      for (int r = 0; r <= q; r++) ll += b->gram_L[(size_t)r * b->k + p] * b->gram_L[(size_t)r * b->k + q];
+      worst = fmax(worst, fabs(s - ll));
+      scale = fmax(scale, fabs(s));
+    }
+  return worst / scale;
+}
+
+static void test_elastic_kernel(void) {
+  sm_mesh *one = tm_icosphere(3);
+  tm_jitter(one, 0.02, 7);
+  sm_basis *b = basis_of(one, SM_BASIS_ELASTIC, 30, 0);
+  CHECK_MSG(b->n_kernel == 6, "one component: %d kernel modes", b->n_kernel);
+  CHECK(b->n_components == 1);
+  CHECK(b->evals[0] > 1e-6 * b->evals[b->k - 1]); /* kernel excluded */
+  for (int i = 1; i < b->k; i++) CHECK(b->evals[i] >= b->evals[i - 1]);
+  CHECK_MSG(gram_error(b) < 1e-10, "Gram factor error %g", gram_error(b));
+  sm_basis_destroy(b);
+
+  sm_mesh *two = tm_union(one, one, 3.0);
+  b = basis_of(two, SM_BASIS_ELASTIC, 30, 0);
+  CHECK_MSG(b->n_kernel == 12, "two components: %d kernel modes", b->n_kernel);
+  CHECK(b->n_components == 2);
+  CHECK(b->evals[0] > 1e-6 * b->evals[b->k - 1]);
+  sm_basis_destroy(b);
+
+  /* An open patch (with boundary) that is not flat: still exactly the 6 rigid motions. */
+  sm_mesh *patch = tm_grid(12, 12);
+  for (int v = 0; v < patch->nv; v++) {
+    double x = patch->V[3 * v], y = patch->V[3 * v + 1];
+    patch->V[3 * v + 2] = 0.3 * sin(3 * x) * cos(2 * y);
+  }
+  b = basis_of(patch, SM_BASIS_ELASTIC, 20, 0);
+  CHECK_MSG(b->n_kernel == 6, "patch: %d kernel modes", b->n_kernel);
+  sm_basis_destroy(b);
+  sm_mesh_destroy(one);
+  sm_mesh_destroy(two);
+  sm_mesh_destroy(patch);
+}
+
+static void test_kernel_size_rule(void) {
+  double ev1[10] = {-3e-12, 1e-13, 2e-12, 5e-13, 1e-12, 4e-12, 0.5, 0.7, 1.1, 2.0};
+  CHECK(sm_basis_kernel_size(ev1, 10, 6) == 6);
+  double ev2[10] = {0.1, 0.5, 0.7, 1.1, 2.0, 2.1, 2.2, 2.3, 2.4, 2.5};
+  CHECK(sm_basis_kernel_size(ev2, 10, 6) == 0);
+  double ev3[12] = {1e-12, 1e-12, 1e-12, 1e-12, 1e-12, 1e-12, 1e-12, 1e-12, 1e-3, 1, 2, 3};
+  CHECK(sm_basis_kernel_size(ev3, 12, 6) == 8); /* the gap decides, not the expectation */
+}
+
+/* Same shape moved, rescaled and renumbered: same spectrum, basis rows permuted (each
+ * function equal up to sign where the eigenvalue is simple). */
+static void check_invariance(int kind) {
+  sm_mesh *m = tm_icosphere(3);
+  tm_jitter(m, 0.05, 11); /* break the sphere's symmetry so eigenvalues are simple */
+  int32_t *perm = malloc((size_t)m->nv * sizeof *perm);
+  tm_permutation(perm, m->nv, 5);
+  sm_mesh *p = tm_permuted(m, perm);
+  const double t[3] = {3.0, -1.0, 2.5};
+  tm_rigid(p, 0.4, -1.1, 2.0, 7.5, t);
+  int k = 20;
+  sm_basis *a = basis_of(m, kind, k, 0), *b = basis_of(p, kind, k, 0);
+  for (int i = 0; i < k; i++)
+    CHECK_MSG(fabs(a->evals[i] - b->evals[i]) <= 1e-6 * fabs(a->evals[k - 1]),
+              "kind %d lambda_%d: %.12g vs %.12g", kind, i, a->evals[i], b->evals[i]);
+  for (int i = 0; i < k; i++) {
+    double gap = INFINITY;
+    if (i > 0) gap = fmin(gap, a->evals[i] - a->evals[i - 1]);
+    if (i + 1 < k) gap = fmin(gap, a->evals[i + 1] - a->evals[i]);
+    if (gap < 1e-3 * a->evals[k - 1]) continue; /* near-degenerate: only the span is defined */
+    double dot = 0, na = 0, nb = 0;
+    for (int v = 0; v < p->nv; v++) {
+      double x = a->phi[(size_t)i * a->n + perm[v]], y = b->phi[(size_t)i * b->n + v];
+      dot += b->mass[v] * x * y;
+      na += b->mass[v] * x * x;
+      nb += b->mass[v] * y * y;
+    }
+    CHECK_MSG(fabs(fabs(dot) / sqrt(na * nb) - 1) < 1e-6, "kind %d function %d: |cos| = %.9f",
+              kind, i, fabs(dot) / sqrt(na * nb));
+  }
+  sm_basis_destroy(a);
+  sm_basis_destroy(b);
+  sm_mesh_destroy(m);
+  sm_mesh_destroy(p);
+  free(perm);
+}
+
+static void test_bad_options(void) {
+  sm_mesh *m = tm_icosphere(1);
+  sm_basis_opts o;
+  sm_error err;
+  sm_basis *b = NULL;
+  sm_basis_opts_default(&o, SM_BASIS_LB, 0);
+  CHECK(sm_basis_compute(m, &o, &b, &err) == SM_EINVAL && !b);
+  sm_basis_opts_default(&o, SM_BASIS_LB, m->nv);
+  CHECK(sm_basis_compute(m, &o, &b, &err) == SM_EINVAL && !b);
+  sm_basis_opts_default(&o, SM_BASIS_ELASTIC, 10);
+  o.eta = -1;
+  CHECK(sm_basis_compute(m, &o, &b, &err) == SM_EINVAL && !b);
+  sm_basis_opts_default(&o, 7, 10);
+  CHECK(sm_basis_compute(m, &o, &b, &err) == SM_EINVAL && !b);
+  sm_mesh_destroy(m);
+}
+
+static int cancel_now(void *ud) {
+  (void)ud;
+  return 1;
+}
+
+static void test_cancel(void) {
+  sm_mesh *m = tm_icosphere(3);
+  sm_basis_opts o;
+  sm_error err;
+  sm_basis *b = NULL;
+  sm_basis_opts_default(&o, SM_BASIS_ELASTIC, 10);
+  o.cancel = cancel_now;
+  CHECK(sm_basis_compute(m, &o, &b, &err) == SM_ECANCELED && !b);
+  sm_mesh_destroy(m);
+}
+
+int main(void) {
+  test_kernel_size_rule();
+  test_bad_options();
+  test_lb_sphere();
+  test_elastic_kernel();
+  check_invariance(SM_BASIS_LB);
+  check_invariance(SM_BASIS_ELASTIC);
+  test_cancel();
+  return sm_test_finish();
+}
