@@ -85,7 +85,7 @@ int sm_mesh_clean(const sm_mesh *in, const sm_limits *lim, sm_mesh **out,
  * transform in center/scale (composed with any earlier one). SM_EEMPTY if area is 0. */
 int sm_mesh_normalize(sm_mesh *m, sm_error *err);
 
-/* Per-face areas (area[nf]); returns the total. */
+/* Per-face areas (area[nf], or NULL for the total only); returns the total. */
 double sm_mesh_face_areas(const sm_mesh *m, double *area);
 
 /* Lumped mixed-Voronoi mass (Meyer et al.): m[nv]; sums to the total area. */
