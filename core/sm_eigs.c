@@ -150,8 +150,10 @@ static int run_lanczos(solver *sv, lanczos *lz, const sm_eigs_opts *o, sm_eigs_s
     if (ido != -1 && ido != 1) break;
     if (o->cancel && o->cancel(o->cancel_ud))
       return sm_error_set(err, SM_ECANCELED, "eigensolver canceled");
+    double t0 = sm_now();
     if (apply_op(sv, lz->workd + lz->ipntr[0] - 1, lz->workd + lz->ipntr[1] - 1))
       return sm_error_set(err, SM_ENUMERIC, "sparse triangular solve failed");
+    st->t_op += sm_now() - t0;
     st->nsolves++;
   }
   st->restarts = lz->iparam[2];

@@ -35,6 +35,7 @@ typedef struct sm_eigs_opts {
 
 typedef struct sm_eigs_stats {
   double t_analyze, t_factor, t_solve; /* seconds: ordering, numeric factor, Lanczos */
+  double t_op;      /* part of t_solve spent applying the operator (triangular solves) */
   int nsolves;      /* operator applications */
   int restarts;
   double factor_nnz;
