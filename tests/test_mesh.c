@@ -12,6 +12,7 @@
 #include "sm_mesh.h"
 #include "sm_test.h"
 #include "sm_testmesh.h"
+#include "sm_topology.h"
 
 /* Mesh from literal arrays. */
 static sm_mesh *make_mesh(int32_t nv, const double *V, int32_t nf, const int32_t *F) {
@@ -208,11 +209,17 @@ static void test_normalize(void) {
   check_normalized(m);
   sm_mesh_destroy(m);
 
-  /* center/scale reproduce V from the input over two successive calls */
+  /* center/scale reproduce V from the input over successive calls, starting from an
+   * earlier recorded transform (center c0, scale s0) so that composition matters */
   m = orig;
+  const double c0[3] = {1, -2, 3}, s0 = 0.37;
+  for (int32_t v = 0; v < m->nv; v++)
+    for (int d = 0; d < 3; d++) m->V[3 * v + d] = (m->V[3 * v + d] - c0[d]) * s0;
+  memcpy(m->center, c0, sizeof c0);
+  m->scale = s0;
   REQUIRE(sm_mesh_normalize(m, &err) == SM_OK);
-  for (int64_t i = 0; i < 3 * (int64_t)m->nv; i++) m->V[i] *= 1; /* no-op */
   REQUIRE(sm_mesh_normalize(m, &err) == SM_OK);
+  check_normalized(m);
   sm_mesh *in = tm_torus(24, 12, 3, 1);
   tm_rigid(in, 0.3, 0.2, -1.1, 5.0, t);
   double worst = 0;
@@ -263,11 +270,338 @@ static void test_components(void) {
   sm_mesh_destroy(w);
 }
 
+/* ---- orientation helpers ---- */
+
+/* Every hinge's second face traverses the shared edge opposite to the first. */
+static int all_consistent(const sm_mesh *m) {
+  sm_edges *e;
+  REQUIRE(sm_edges_build(m, &e, NULL) == SM_OK);
+  int ok = 1;
+  for (int32_t h = 0; h < e->nhinge; h++) {
+    int32_t i = e->hinge[4 * h], j = e->hinge[4 * h + 1], g = e->hinge_face[2 * h + 1];
+    int found = 0;
+    for (int c = 0; c < 3; c++)
+      found |= m->F[3 * g + c] == j && m->F[3 * g + (c + 1) % 3] == i;
+    ok &= found;
+  }
+  sm_edges_destroy(e);
+  return ok;
+}
+
+static void flip_face(sm_mesh *m, int32_t f) {
+  int32_t t = m->F[3 * f + 1];
+  m->F[3 * f + 1] = m->F[3 * f + 2];
+  m->F[3 * f + 2] = t;
+}
+
+/* Flips each face with probability p; returns how many. */
+static int32_t flip_random(sm_mesh *m, double p, uint64_t seed) {
+  int32_t k = 0;
+  for (int32_t f = 0; f < m->nf; f++)
+    if (tm_rand(&seed) < p) flip_face(m, f), k++;
+  return k;
+}
+
+static int same_faces(const sm_mesh *a, const sm_mesh *b) {
+  return a->nf == b->nf && memcmp(a->F, b->F, (size_t)a->nf * 3 * sizeof *a->F) == 0;
+}
+
+/* ---- clean ---- */
+
+static void test_clean_drops(void) {
+  /* Input: vertex 0 unused, 1..42 the icosphere, 43 the midpoint of ico vertices 0 and 1
+   * (only in a zero-area face), 44 unused. Faces: a reversed copy of ico face 10 first
+   * (kept, since it comes first, then flipped back), the icosphere, then junk. */
+  sm_mesh *ico = tm_icosphere(1);
+  int32_t nv = ico->nv + 3, nf = ico->nf + 6;
+  sm_mesh *in;
+  REQUIRE(sm_mesh_alloc(nv, nf, NULL, &in, NULL) == SM_OK);
+  in->V[0] = 100, in->V[1] = 100, in->V[2] = 100;
+  memcpy(in->V + 3, ico->V, (size_t)ico->nv * 3 * sizeof(double));
+  for (int d = 0; d < 3; d++) {
+    in->V[3 * 43 + d] = 0.5 * (ico->V[d] + ico->V[3 + d]);
+    in->V[3 * 44 + d] = -7;
+  }
+  int32_t *F = in->F;
+  F[0] = ico->F[30] + 1, F[1] = ico->F[32] + 1, F[2] = ico->F[31] + 1; /* reversed face 10 */
+  for (int32_t i = 0; i < 3 * ico->nf; i++) F[3 + i] = ico->F[i] + 1;
+  int32_t *x = F + 3 + 3 * ico->nf;
+  const int32_t junk[15] = {
+      1, 1, 2,                                           /* repeated index */
+      1, 43, 2,                                          /* zero area (collinear) */
+      ico->F[21] + 1, ico->F[22] + 1, ico->F[23] + 1,    /* duplicate of face 7 */
+      ico->F[22] + 1, ico->F[21] + 1, ico->F[23] + 1,    /* reversed duplicate of face 7 */
+      5, 5, 5};                                          /* repeated index */
+  memcpy(x, junk, sizeof junk);
+  sm_mesh *before;
+  REQUIRE(sm_mesh_copy(in, &before, NULL) == SM_OK);
+
+  sm_mesh *out;
+  sm_clean_report r;
+  sm_error err;
+  REQUIRE(sm_mesh_clean(in, NULL, &out, &r, &err) == SM_OK);
+  CHECK(r.input_vertices == nv && r.input_faces == nf);
+  CHECK(r.dropped_repeated_index == 2);
+  CHECK(r.dropped_zero_area == 1);
+  CHECK(r.dropped_duplicate == 3); /* face 7 twice, and ico face 10 (after its reversed copy) */
+  CHECK(r.dropped_unreferenced == 3);
+  CHECK(r.flipped_faces == 1);
+  CHECK(r.boundary_edges == 0 && r.nonmanifold_edges == 0);
+  CHECK(r.components == 1 && r.nonorientable_components == 0);
+  CHECK(out->nv == ico->nv && out->nf == ico->nf);
+  CHECK(out->n_input == nv);
+  REQUIRE(out->to_input != NULL);
+  int ok = 1;
+  for (int32_t v = 0; v < out->nv; v++) {
+    ok &= out->to_input[v] == v + 1; /* vertex 0 dropped, order kept */
+    ok &= memcmp(out->V + 3 * v, in->V + 3 * out->to_input[v], 3 * sizeof(double)) == 0;
+  }
+  CHECK(ok);
+  CHECK(all_consistent(out));
+  CHECK(signed_volume(ico) > 3);
+  CHECK_NEAR(signed_volume(out), signed_volume(ico), 1e-12);
+  CHECK_NEAR(total_area(out), total_area(ico), 1e-12);
+  /* `in` untouched */
+  CHECK(memcmp(in->V, before->V, (size_t)nv * 3 * sizeof(double)) == 0 && same_faces(in, before));
+  sm_mesh_destroy(before);
+  sm_mesh_destroy(out);
+  sm_mesh_destroy(in);
+  sm_mesh_destroy(ico);
+}
+
+static void test_clean_all_degenerate(void) {
+  /* 12 faces, each with a repeated index or collinear corners */
+  const double V[] = {0, 0, 0, 1, 0, 0, 2, 0, 0, 3, 0, 0, 0, 0, 0};
+  const int32_t F[] = {0, 1, 2, 1, 2, 3, 0, 2, 3, 0, 1, 3, 0, 0, 1, 1, 2, 2,
+                       3, 3, 3, 0, 4, 1, 4, 0, 4, 2, 3, 1, 3, 2, 0, 1, 0, 4};
+  sm_mesh *m = make_mesh(5, V, 12, F), *out = (sm_mesh *)1;
+  sm_error err;
+  sm_clean_report r;
+  CHECK(sm_mesh_clean(m, NULL, &out, &r, &err) == SM_EEMPTY);
+  CHECK(out == NULL);
+  CHECK_MSG(strstr(err.msg, "12 faces"), "%s", err.msg);
+  sm_mesh_destroy(m);
+
+  /* scale invariance: a tiny but proper triangle survives, a 1e-14-high sliver does not */
+  const double Vs[] = {0, 0, 0, 1e-6, 0, 0, 0, 1e-6, 0, 1e-6, 1e-6, 1e-20};
+  const int32_t Fs[] = {0, 1, 2, 1, 3, 2};
+  m = make_mesh(4, Vs, 2, Fs);
+  REQUIRE(sm_mesh_clean(m, NULL, &out, &r, &err) == SM_OK);
+  CHECK(out->nf == 2 && r.dropped_zero_area == 0);
+  sm_mesh_destroy(out);
+  m->V[9] = 0.5e-6, m->V[10] = 0.5e-6 + 1e-20; /* vertex 3 onto the hypotenuse */
+  REQUIRE(sm_mesh_clean(m, NULL, &out, &r, &err) == SM_OK);
+  CHECK(out->nf == 1 && r.dropped_zero_area == 1 && r.dropped_unreferenced == 1);
+  sm_mesh_destroy(out);
+  sm_mesh_destroy(m);
+}
+
+static void test_clean_twice(void) {
+  /* A: vertex 0 unused, 1..3 a lone triangle, 4.. the icosphere */
+  sm_mesh *ico = tm_icosphere(1), *a;
+  REQUIRE(sm_mesh_alloc(ico->nv + 4, ico->nf + 1, NULL, &a, NULL) == SM_OK);
+  const double tri[12] = {9, 9, 9, 5, 0, 0, 6, 0, 0, 5, 1, 0};
+  memcpy(a->V, tri, sizeof tri);
+  memcpy(a->V + 12, ico->V, (size_t)ico->nv * 3 * sizeof(double));
+  a->F[0] = 1, a->F[1] = 2, a->F[2] = 3;
+  for (int32_t i = 0; i < 3 * ico->nf; i++) a->F[3 + i] = ico->F[i] + 4;
+  sm_mesh *m1, *m2;
+  sm_clean_report r;
+  sm_error err;
+  REQUIRE(sm_mesh_clean(a, NULL, &m1, &r, &err) == SM_OK);
+  CHECK(m1->nv == ico->nv + 3 && m1->to_input[0] == 1 && m1->to_input[3] == 4);
+  CHECK(r.components == 2);
+  /* collapse the triangle (now vertices 0..2 of m1) so the second cleaning drops it */
+  memcpy(m1->V + 6, m1->V, 3 * sizeof(double));
+  REQUIRE(sm_mesh_clean(m1, NULL, &m2, &r, &err) == SM_OK);
+  CHECK(r.dropped_zero_area == 1 && r.dropped_unreferenced == 3 && r.components == 1);
+  CHECK(m2->nv == ico->nv && m2->n_input == a->nv);
+  int ok = 1;
+  for (int32_t v = 0; v < m2->nv; v++) {
+    ok &= m2->to_input[v] == v + 4;
+    ok &= memcmp(m2->V + 3 * v, a->V + 3 * m2->to_input[v], 3 * sizeof(double)) == 0;
+  }
+  CHECK(ok);
+  sm_mesh_destroy(m1);
+  sm_mesh_destroy(m2);
+  sm_mesh_destroy(a);
+  sm_mesh_destroy(ico);
+}
+
+static void test_clean_nonmanifold_and_components(void) {
+  /* three faces on edge (0, 1) */
+  const double V[] = {0, 0, 0, 1, 0, 0, 0.5, 1, 0, 0.5, -1, 0, 0.5, 0, 1};
+  const int32_t F[] = {0, 1, 2, 1, 0, 3, 0, 1, 4};
+  sm_mesh *m = make_mesh(5, V, 3, F), *out;
+  sm_clean_report r;
+  sm_error err;
+  REQUIRE(sm_mesh_clean(m, NULL, &out, &r, &err) == SM_OK);
+  CHECK(out->nf == 3 && r.nonmanifold_edges == 1 && r.boundary_edges == 6);
+  CHECK(r.components == 1 && r.flipped_faces == 0);
+  sm_mesh_destroy(out);
+  sm_mesh_destroy(m);
+
+  sm_mesh *s = tm_icosphere(2), *t = tm_torus(16, 8, 2, 0.5);
+  sm_mesh *u = tm_union(s, t, 5);
+  REQUIRE(sm_mesh_clean(u, NULL, &out, &r, &err) == SM_OK);
+  CHECK(r.components == 2 && r.flipped_faces == 0 && r.boundary_edges == 0);
+  CHECK(out->nv == u->nv && out->nf == u->nf);
+  sm_mesh_destroy(out);
+  sm_mesh_destroy(u);
+  sm_mesh_destroy(s);
+  sm_mesh_destroy(t);
+}
+
+/* ---- orientation ---- */
+
+static void test_orient_sphere(void) {
+  sm_mesh *ref = tm_icosphere(3), *m, *out;
+  sm_clean_report r;
+  sm_error err;
+  REQUIRE(sm_mesh_copy(ref, &m, NULL) == SM_OK);
+  int32_t k = flip_random(m, 0.3, 11);
+  CHECK(k > 0);
+  CHECK(!all_consistent(m));
+  REQUIRE(sm_mesh_clean(m, NULL, &out, &r, &err) == SM_OK);
+  CHECK_MSG(r.flipped_faces == k, "flipped %d, expected %d", r.flipped_faces, k);
+  CHECK(all_consistent(out) && signed_volume(out) > 4);
+  CHECK(same_faces(out, ref)); /* exactly the original winding back */
+  sm_mesh_destroy(out);
+  sm_mesh_destroy(m);
+
+  /* more than half flipped: the cheap orientation is inward, the volume test wins */
+  REQUIRE(sm_mesh_copy(ref, &m, NULL) == SM_OK);
+  k = flip_random(m, 0.7, 12);
+  REQUIRE(sm_mesh_clean(m, NULL, &out, &r, &err) == SM_OK);
+  CHECK_MSG(r.flipped_faces == k, "flipped %d, expected %d", r.flipped_faces, k);
+  CHECK(same_faces(out, ref));
+  sm_mesh_destroy(out);
+  sm_mesh_destroy(m);
+
+  /* inside-out: every face flipped */
+  REQUIRE(sm_mesh_copy(ref, &m, NULL) == SM_OK);
+  for (int32_t f = 0; f < m->nf; f++) flip_face(m, f);
+  CHECK(signed_volume(m) < 0);
+  REQUIRE(sm_mesh_clean(m, NULL, &out, &r, &err) == SM_OK);
+  CHECK(r.flipped_faces == m->nf && signed_volume(out) > 4);
+  sm_mesh_destroy(out);
+  sm_mesh_destroy(m);
+  sm_mesh_destroy(ref);
+}
+
+static void test_orient_torus_and_union(void) {
+  /* inside-out torus (non-convex, genus 1), oriented in place */
+  sm_mesh *t = tm_torus(24, 12, 2, 0.7);
+  double v0 = signed_volume(t);
+  CHECK(v0 > 0);
+  for (int32_t f = 0; f < t->nf; f++) flip_face(t, f);
+  flip_random(t, 0.2, 5);
+  int32_t flipped = -1, bad = -1;
+  sm_error err;
+  REQUIRE(sm_mesh_orient(t, &flipped, &bad, &err) == SM_OK);
+  CHECK(bad == 0 && flipped > t->nf / 2);
+  CHECK(all_consistent(t));
+  CHECK_NEAR(signed_volume(t), v0, 1e-9 * v0);
+
+  /* two spheres, one inside-out: each closed component is turned outward on its own */
+  sm_mesh *a = tm_icosphere(2), *b = tm_icosphere(2);
+  for (int32_t f = 0; f < b->nf; f++) flip_face(b, f);
+  sm_mesh *u = tm_union(a, b, 3), *out;
+  sm_clean_report r;
+  REQUIRE(sm_mesh_clean(u, NULL, &out, &r, &err) == SM_OK);
+  CHECK(r.components == 2 && r.flipped_faces == b->nf);
+  CHECK(all_consistent(out));
+  CHECK(signed_volume(out) > 2 * 4);
+  sm_mesh_destroy(out);
+  sm_mesh_destroy(u);
+  sm_mesh_destroy(a);
+  sm_mesh_destroy(b);
+  sm_mesh_destroy(t);
+}
+
+static void test_orient_grid(void) {
+  sm_mesh *ref = tm_grid(12, 9), *m, *out;
+  REQUIRE(sm_mesh_copy(ref, &m, NULL) == SM_OK);
+  int32_t k = flip_random(m, 0.35, 3);
+  if (m->F[1] == ref->F[1]) flip_face(m, 0), k++; /* the BFS seed must be a wrong one */
+  sm_clean_report r;
+  sm_error err;
+  REQUIRE(sm_mesh_clean(m, NULL, &out, &r, &err) == SM_OK);
+  CHECK(r.flipped_faces == k && r.boundary_edges == 2 * (12 + 9) && r.components == 1);
+  CHECK(all_consistent(out));
+  CHECK(same_faces(out, ref)); /* majority (+z) orientation kept */
+  sm_mesh_destroy(out);
+  sm_mesh_destroy(m);
+  sm_mesh_destroy(ref);
+}
+
+/* Moebius strip: no orientation is consistent. */
+static void test_orient_moebius(void) {
+  const int n = 20;
+  sm_mesh *m;
+  REQUIRE(sm_mesh_alloc(2 * n, 2 * n, NULL, &m, NULL) == SM_OK);
+  for (int i = 0; i < n; i++)
+    for (int s = 0; s < 2; s++) {
+      double u = 2 * M_PI * i / n, w = s ? 0.3 : -0.3, *p = m->V + 3 * (2 * i + s);
+      p[0] = (1 + w * cos(u / 2)) * cos(u), p[1] = (1 + w * cos(u / 2)) * sin(u);
+      p[2] = w * sin(u / 2);
+    }
+  for (int i = 0; i < n; i++) {
+    int32_t a = 2 * i, b = 2 * i + 1, c = 2 * (i + 1), d = c + 1;
+    if (i == n - 1) c = 1, d = 0; /* the half twist: w -> -w after one turn */
+    int32_t q[6] = {a, c, d, a, d, b};
+    memcpy(m->F + 6 * i, q, sizeof q);
+  }
+  sm_mesh *out;
+  sm_clean_report r;
+  sm_error err;
+  REQUIRE(sm_mesh_clean(m, NULL, &out, &r, &err) == SM_OK);
+  CHECK(r.nonorientable_components == 1 && r.components == 1);
+  CHECK(r.boundary_edges == 2 * n);
+  CHECK(r.flipped_faces <= n); /* never more than half */
+  sm_mesh_destroy(out);
+  /* a sphere is orientable */
+  sm_mesh *s = tm_icosphere(1);
+  int32_t bad = -1;
+  REQUIRE(sm_mesh_orient(s, NULL, &bad, &err) == SM_OK);
+  CHECK(bad == 0);
+  sm_mesh_destroy(s);
+  sm_mesh_destroy(m);
+}
+
+/* ---- limits ---- */
+
+static void test_limits(void) {
+  sm_limits lim = {10, 20};
+  sm_error err;
+  CHECK(sm_limits_check(&lim, 10, 20, &err) == SM_OK);
+  CHECK(sm_limits_check(&lim, 11, 20, &err) == SM_ELIMIT);
+  CHECK(sm_limits_check(&lim, 10, 21, &err) == SM_ELIMIT);
+  CHECK(sm_limits_check(&lim, -1, 0, &err) == SM_ELIMIT);
+  sm_mesh *m = tm_icosphere(1), *out = (sm_mesh *)1; /* 42 vertices, 80 faces */
+  sm_limits lf = {1000, 79}, lv = {41, 1000}, ok = {42, 80};
+  CHECK(sm_mesh_clean(m, &lf, &out, NULL, &err) == SM_ELIMIT && out == NULL);
+  CHECK_MSG(strstr(err.msg, "80"), "%s", err.msg);
+  CHECK(sm_mesh_clean(m, &lv, &out, NULL, &err) == SM_ELIMIT && out == NULL);
+  REQUIRE(sm_mesh_clean(m, &ok, &out, NULL, &err) == SM_OK);
+  sm_mesh_destroy(out);
+  sm_mesh_destroy(m);
+}
+
 int main(void) {
   test_validate();
   test_areas_and_mass();
   test_normals();
   test_normalize();
   test_components();
+  test_clean_drops();
+  test_clean_all_degenerate();
+  test_clean_twice();
+  test_clean_nonmanifold_and_components();
+  test_orient_sphere();
+  test_orient_torus_and_union();
+  test_orient_grid();
+  test_orient_moebius();
+  test_limits();
   return sm_test_finish();
 }
