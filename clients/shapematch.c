@@ -1,0 +1,251 @@
+/* shapematch: the command-line front end.
+ *
+ * Subcommands (this file dispatches; each lives in a function below):
+ *   basis  MESH --kind lb|elastic -k K [--eta E] -o OUT.smb   compute and save a basis
+ *   info   MESH | BASIS.smb                                  describe a mesh or basis file
+ *   encode MESH -o OUT.drc [--qbits Q]                        Draco-encode (order-preserving)
+ *   synth  sphere|torus|blob [...] -o OUT.off                 write a mesh of our own
+ * Exit status: 0 success, 1 failure (message on stderr), 2 usage error.
+ */
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <unistd.h>
+
+#include "sm_basis.h"
+#include "sm_eigs.h"
+#include "sm_meshio.h"
+#include "sm_shell.h"
+#include "sm_synth.h"
+
+#define SM_VERSION "0.1.0"
+
+static int usage(FILE *f) {
+  fprintf(f,
+          "usage: shapematch <command> [options]\n"
+          "\n"
+          "commands:\n"
+          "  basis MESH [--kind lb|elastic] [-k K] [--eta E] [--no-normalize] -o OUT.smb\n"
+          "        compute a spectral basis (default: elastic, k = 100, eta = %g) and save it\n"
+          "  info FILE\n"
+          "        describe a mesh (OFF, OBJ, PLY, STL, DRC, optionally .gz) or a .smb basis\n"
+          "  encode MESH -o OUT.drc [--qbits Q]\n"
+          "        Draco-encode a mesh, sequential (vertex order kept), lossless unless Q > 0\n"
+          "  synth sphere|torus|blob [--subdiv S] [--seed N] [--amp A] [--stretch X,Y,Z] -o OUT.off\n"
+          "        write an analytic mesh (blobs of one subdiv share connectivity and vertex\n"
+          "        order, so any two correspond by identity)\n"
+          "  version\n",
+          SM_SHELL_DEFAULT_ETA);
+  return 2;
+}
+
+static int fail(const char *what, const sm_error *err) {
+  fprintf(stderr, "shapematch: %s: %s (%s)\n", what, err->msg, sm_strerror(err->code));
+  return 1;
+}
+
+/* Reads, cleans and (optionally) normalizes a mesh; prints what cleaning changed. */
+static int load_mesh(const char *path, int normalize, int verbose, sm_mesh **out) {
+  sm_error err;
+  sm_mesh *raw = NULL;
+  sm_clean_report rep;
+  *out = NULL;
+  if (sm_mesh_read_file(path, NULL, &raw, &err)) return fail(path, &err);
+  int rc = sm_mesh_clean(raw, NULL, out, &rep, &err);
+  sm_mesh_destroy(raw);
+  if (rc) return fail(path, &err);
+  if (normalize && sm_mesh_normalize(*out, &err)) {
+    sm_mesh_destroy(*out);
+    *out = NULL;
+    return fail(path, &err);
+  }
+  if (verbose)
+    fprintf(stderr,
+            "%s: %d vertices, %d faces read; kept %d vertices, %d faces; dropped %d "
+            "repeated-index, %d zero-area, %d duplicate faces, %d unreferenced vertices; "
+            "%d faces flipped; %d components, %d boundary and %d non-manifold edges\n",
+            path, rep.input_vertices, rep.input_faces, (*out)->nv, (*out)->nf,
+            rep.dropped_repeated_index, rep.dropped_zero_area, rep.dropped_duplicate,
+            rep.dropped_unreferenced, rep.flipped_faces, rep.components, rep.boundary_edges,
+            rep.nonmanifold_edges);
+  return 0;
+}
+
+static int parse_kind(const char *s) {
+  if (!strcmp(s, "lb")) return SM_BASIS_LB;
+  if (!strcmp(s, "elastic")) return SM_BASIS_ELASTIC;
+  return 0;
+}
+
+static int cmd_basis(int argc, char **argv) {
+  const char *in = NULL, *out = NULL;
+  int kind = SM_BASIS_ELASTIC, k = 100, normalize = 1, quiet = 0;
+  double eta = 0;
+  for (int i = 0; i < argc; i++) {
+    if (!strcmp(argv[i], "--kind") && i + 1 < argc) {
+      if (!(kind = parse_kind(argv[++i]))) {
+        fprintf(stderr, "shapematch basis: --kind must be lb or elastic, not '%s'\n", argv[i]);
+        return 2;
+      }
+    } else if (!strcmp(argv[i], "-k") && i + 1 < argc) k = atoi(argv[++i]);
+    else if (!strcmp(argv[i], "--eta") && i + 1 < argc) eta = atof(argv[++i]);
+    else if (!strcmp(argv[i], "-o") && i + 1 < argc) out = argv[++i];
+    else if (!strcmp(argv[i], "--no-normalize")) normalize = 0;
+    else if (!strcmp(argv[i], "-q")) quiet = 1;
+    else if (argv[i][0] == '-' || in) return usage(stderr);
+    else in = argv[i];
+  }
+  if (!in || !out) return usage(stderr);
+  sm_mesh *m;
+  if (load_mesh(in, normalize, !quiet, &m)) return 1;
+  sm_basis_opts o;
+  sm_basis_opts_default(&o, kind, k);
+  if (eta > 0) o.eta = eta;
+  sm_basis *b = NULL;
+  sm_error err;
+  double t0 = sm_now();
+  int rc = sm_basis_compute(m, &o, &b, &err);
+  double dt = sm_now() - t0;
+  sm_mesh_destroy(m);
+  if (rc) return fail("basis", &err);
+  if (!quiet)
+    fprintf(stderr,
+            "%s basis: n = %d, k = %d, kernel dropped = %d, lambda in [%.6g, %.6g]; "
+            "%.3f s (assembly %.3f, factorization %.3f, eigensolve %.3f, projection %.3f)\n",
+            kind == SM_BASIS_LB ? "LB" : "elastic", b->n, b->k, b->n_kernel, b->evals[0],
+            b->evals[b->k - 1], dt, b->timing.assembly, b->timing.factorization,
+            b->timing.eigensolve, b->timing.projection);
+  rc = sm_basis_save(b, out, &err);
+  sm_basis_destroy(b);
+  if (rc) return fail(out, &err);
+  if (!quiet) fprintf(stderr, "wrote %s\n", out);
+  return 0;
+}
+
+static int has_suffix(const char *s, const char *suf) {
+  size_t n = strlen(s), m = strlen(suf);
+  return n >= m && !strcmp(s + n - m, suf);
+}
+
+static int info_basis(const char *path) {
+  sm_basis *b;
+  sm_error err;
+  if (sm_basis_load(path, &b, &err)) return fail(path, &err);
+  printf("kind=%s n=%d k=%d kernel_dropped=%d components=%d eta=%g mu=%g lambda=%g "
+         "mesh_hash=%016llx lambda_min=%.9g lambda_max=%.9g gram=%s\n",
+         b->kind == SM_BASIS_LB ? "lb" : "elastic", b->n, b->k, b->n_kernel, b->n_components,
+         b->eta, b->mu, b->lambda, (unsigned long long)b->mesh_hash, b->evals[0],
+         b->evals[b->k - 1], b->gram_L ? "cholesky" : "identity");
+  sm_basis_destroy(b);
+  return 0;
+}
+
+static int cmd_info(int argc, char **argv) {
+  if (argc != 1) return usage(stderr);
+  if (has_suffix(argv[0], ".smb")) return info_basis(argv[0]);
+  sm_mesh *m;
+  if (load_mesh(argv[0], 0, 1, &m)) return 1;
+  printf("vertices=%d faces=%d input_vertices=%d area=%.9g mesh_hash=%016llx\n", m->nv, m->nf,
+         m->n_input, sm_mesh_face_areas(m, NULL), (unsigned long long)sm_mesh_hash(m));
+  sm_mesh_destroy(m);
+  return 0;
+}
+
+static int cmd_encode(int argc, char **argv) {
+  const char *in = NULL, *out = NULL;
+  int qbits = 0;
+  for (int i = 0; i < argc; i++) {
+    if (!strcmp(argv[i], "-o") && i + 1 < argc) out = argv[++i];
+    else if (!strcmp(argv[i], "--qbits") && i + 1 < argc) qbits = atoi(argv[++i]);
+    else if (argv[i][0] == '-' || in) return usage(stderr);
+    else in = argv[i];
+  }
+  if (!in || !out) return usage(stderr);
+  sm_error err;
+  sm_mesh *m;
+  uint8_t *buf;
+  size_t len;
+  /* Encode the file as read, not cleaned: the .drc must keep the user's numbering. */
+  if (sm_mesh_read_file(in, NULL, &m, &err)) return fail(in, &err);
+  int rc = sm_draco_encode(m, qbits, &buf, &len, &err);
+  sm_mesh_destroy(m);
+  if (rc) return fail("encode", &err);
+  FILE *f = fopen(out, "wb");
+  int ok = f && fwrite(buf, 1, len, f) == len;
+  ok = f && !fclose(f) && ok;
+  free(buf);
+  if (!ok) {
+    perror(out);
+    return 1;
+  }
+  fprintf(stderr, "wrote %s (%zu bytes)\n", out, len);
+  return 0;
+}
+
+static int write_off(const sm_mesh *m, const char *path) {
+  FILE *f = fopen(path, "w");
+  if (!f) {
+    perror(path);
+    return 1;
+  }
+  fprintf(f, "OFF\n%d %d 0\n", m->nv, m->nf);
+  for (int32_t v = 0; v < m->nv; v++)
+    fprintf(f, "%.17g %.17g %.17g\n", m->V[3 * v], m->V[3 * v + 1], m->V[3 * v + 2]);
+  for (int32_t t = 0; t < m->nf; t++)
+    fprintf(f, "3 %d %d %d\n", m->F[3 * t], m->F[3 * t + 1], m->F[3 * t + 2]);
+  if (fclose(f)) {
+    perror(path);
+    return 1;
+  }
+  return 0;
+}
+
+static int cmd_synth(int argc, char **argv) {
+  const char *shape = NULL, *out = NULL;
+  int subdiv = 4;
+  unsigned seed = 1;
+  double amp = 0.35, st[3] = {1, 1, 1};
+  for (int i = 0; i < argc; i++) {
+    if (!strcmp(argv[i], "-o") && i + 1 < argc) out = argv[++i];
+    else if (!strcmp(argv[i], "--subdiv") && i + 1 < argc) subdiv = atoi(argv[++i]);
+    else if (!strcmp(argv[i], "--seed") && i + 1 < argc) seed = (unsigned)atoi(argv[++i]);
+    else if (!strcmp(argv[i], "--amp") && i + 1 < argc) amp = atof(argv[++i]);
+    else if (!strcmp(argv[i], "--stretch") && i + 1 < argc) {
+      if (sscanf(argv[++i], "%lf,%lf,%lf", &st[0], &st[1], &st[2]) != 3) return usage(stderr);
+    } else if (argv[i][0] == '-' || shape) return usage(stderr);
+    else shape = argv[i];
+  }
+  if (!shape || !out) return usage(stderr);
+  sm_mesh *m = NULL;
+  sm_error err;
+  int rc;
+  if (!strcmp(shape, "sphere")) rc = sm_synth_icosphere(subdiv, &m, &err);
+  else if (!strcmp(shape, "torus"))
+    rc = sm_synth_torus(8 << (subdiv / 2), 4 << (subdiv / 2), 1.0, 0.35, &m, &err);
+  else if (!strcmp(shape, "blob")) rc = sm_synth_blob(subdiv, amp, seed, st, &m, &err);
+  else return usage(stderr);
+  if (rc) return fail(shape, &err);
+  rc = write_off(m, out);
+  if (!rc) fprintf(stderr, "wrote %s (%d vertices, %d faces)\n", out, m->nv, m->nf);
+  sm_mesh_destroy(m);
+  return rc;
+}
+
+int main(int argc, char **argv) {
+  if (argc < 2) return usage(stderr);
+  const char *cmd = argv[1];
+  if (!strcmp(cmd, "basis")) return cmd_basis(argc - 2, argv + 2);
+  if (!strcmp(cmd, "info")) return cmd_info(argc - 2, argv + 2);
+  if (!strcmp(cmd, "encode")) return cmd_encode(argc - 2, argv + 2);
+  if (!strcmp(cmd, "synth")) return cmd_synth(argc - 2, argv + 2);
+  if (!strcmp(cmd, "version") || !strcmp(cmd, "--version")) {
+    printf("shapematch %s\n", SM_VERSION);
+    return 0;
+  }
+  if (!strcmp(cmd, "help") || !strcmp(cmd, "--help") || !strcmp(cmd, "-h")) {
+    usage(stdout);
+    return 0;
+  }
+  fprintf(stderr, "shapematch: unknown command '%s'\n", cmd);
+  return usage(stderr);
+}

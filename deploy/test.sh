@@ -1,0 +1,18 @@
+#!/usr/bin/env bash
+# The README's test command: installs the Debian dependencies, builds shapematch twice
+# (optimized, and with AddressSanitizer + UBSan), and runs the whole ctest suite in both.
+# Data-dependent tests use ../shared/data when it exists and are skipped otherwise.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+./deploy/install-deps.sh
+jobs=$(nproc)
+
+cmake -S . -B build -DCMAKE_BUILD_TYPE=RelWithDebInfo >/dev/null
+cmake --build build -j"$jobs"
+(cd build && ctest --output-on-failure -j"$jobs")
+
+# The sanitizer pass: bad input must fail cleanly, not by luck. Leak checks included.
+cmake -S . -B build-asan -DCMAKE_BUILD_TYPE=Debug -DSM_ASAN=ON >/dev/null
+cmake --build build-asan -j"$jobs"
+(cd build-asan && ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 \
+   UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 ctest --output-on-failure -j"$jobs")
