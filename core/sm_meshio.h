@@ -40,4 +40,14 @@ int sm_draco_encode(const sm_mesh *m, int quant_bits, uint8_t **buf, size_t *len
 int sm_read_file_bytes(const char *path, size_t max_bytes, uint8_t **buf, size_t *len,
                        sm_error *err);
 
+/* Internal, for sm_meshio.c only (implemented in io/sm_openmesh_io.cpp, C++ behind a C
+ * ABI). Parses buf[len], a whole file in the format named by ext ("stl" or "ply"), with
+ * OpenMesh. Faces are recorded as the file lists them, before OpenMesh's halfedge structure
+ * can reject a non-manifold one, so nothing is lost; polygons are fan-triangulated.
+ * *n_polygons receives how many faces OpenMesh reported, so the caller can compare it with
+ * what the file declares and fall back to its own reader when they differ. binary: 1 if
+ * the content is binary (OpenMesh cannot tell from a stream for STL). */
+int sm_openmesh_read(const uint8_t *buf, size_t len, const char *ext, int binary,
+                     const sm_limits *lim, sm_mesh **out, int64_t *n_polygons, sm_error *err);
+
 #endif

@@ -1,0 +1,177 @@
+/* sm_draco_io: Draco decode/encode behind a C ABI.
+ *
+ * DESIGN
+ *   Decoding: the result's vertex i is Draco point i, reading the position through the
+ *   attribute's point-to-value map (edgebreaker files share values between points, and a
+ *   point is what the faces index). Counts are checked against the limits before the
+ *   sm_mesh is allocated.
+ *   Encoding: the Draco mesh is built with one point per vertex and an identity
+ *   point-to-value map, and is never passed through Draco's deduplication, so the
+ *   sequential coder writes points and faces in our order and a decode gives them back in
+ *   that order.
+ */
+#include <cmath>
+#include <cstdint>
+#include <cstdlib>
+#include <cstring>
+#include <exception>
+#include <memory>
+#include <new>
+
+#include <draco/compression/decode.h>
+#include <draco/compression/encode.h>
+#include <draco/mesh/mesh.h>
+
+extern "C" {
+#include "sm_meshio.h"
+}
+
+namespace {
+
+int decode_impl(const uint8_t *buf, size_t len, const sm_limits *lim, sm_mesh **out,
+                sm_error *err) {
+  draco::DecoderBuffer db;
+  db.Init(reinterpret_cast<const char *>(buf), len);
+  auto type = draco::Decoder::GetEncodedGeometryType(&db);
+  if (!type.ok())
+    return sm_error_set(err, SM_EFORMAT, "draco: bad header (%zu bytes): %s", len,
+                        type.status().error_msg());
+  if (type.value() == draco::POINT_CLOUD)
+    return sm_error_set(err, SM_EUNSUPPORTED,
+                        "draco: the bitstream is a point cloud, not a mesh (no faces)");
+  if (type.value() != draco::TRIANGULAR_MESH)
+    return sm_error_set(err, SM_EFORMAT, "draco: unknown geometry type %d", (int)type.value());
+
+  db.Init(reinterpret_cast<const char *>(buf), len);
+  draco::Decoder dec;
+  auto res = dec.DecodeMeshFromBuffer(&db);
+  if (!res.ok())
+    return sm_error_set(err, SM_EFORMAT, "draco: decode failed (%zu bytes): %s", len,
+                        res.status().error_msg());
+  std::unique_ptr<draco::Mesh> dm = std::move(res).value();
+  if (!dm) return sm_error_set(err, SM_EFORMAT, "draco: decoder returned no mesh");
+
+  const draco::PointAttribute *pos =
+      dm->GetNamedAttribute(draco::GeometryAttribute::POSITION);
+  if (!pos)
+    return sm_error_set(err, SM_EUNSUPPORTED, "draco: mesh has no POSITION attribute");
+  if (pos->num_components() < 2 || pos->num_components() > 4)
+    return sm_error_set(err, SM_EUNSUPPORTED, "draco: POSITION has %d components",
+                        (int)pos->num_components());
+
+  int64_t nv = dm->num_points(), nf = dm->num_faces();
+  int rc = sm_limits_check(lim, nv, nf, err);
+  if (rc) return rc;
+  sm_mesh *m;
+  if ((rc = sm_mesh_alloc(nv, nf, lim, &m, err))) return rc;
+  std::unique_ptr<sm_mesh, void (*)(sm_mesh *)> guard(m, sm_mesh_destroy);
+
+  for (int64_t i = 0; i < nv; i++) {
+    double p[4] = {0, 0, 0, 0};
+    draco::AttributeValueIndex av = pos->mapped_index(draco::PointIndex((uint32_t)i));
+    if (av.value() >= pos->size() ||
+        !pos->ConvertValue<double>(av, (int8_t)pos->num_components(), p))
+      return sm_error_set(err, SM_EFORMAT, "draco: point %lld has no readable position",
+                          (long long)i);
+    std::memcpy(m->V + 3 * i, p, 3 * sizeof(double));
+  }
+  for (int64_t f = 0; f < nf; f++) {
+    const draco::Mesh::Face &face = dm->face(draco::FaceIndex((uint32_t)f));
+    for (int c = 0; c < 3; c++) m->F[3 * f + c] = (int32_t)face[c].value();
+  }
+  *out = guard.release();
+  return 0;
+}
+
+/* Draco would encode garbage or crash on these, so they are refused up front. */
+int check_encodable(const sm_mesh *m, sm_error *err) {
+  if (m->nv <= 0 || m->nf <= 0)
+    return sm_error_set(err, SM_EEMPTY, "draco encode: mesh has %d vertices and %d faces",
+                        (int)m->nv, (int)m->nf);
+  for (int64_t i = 0; i < 3 * (int64_t)m->nv; i++)
+    if (!std::isfinite(m->V[i]) || std::fabs(m->V[i]) > 3.4e38)
+      return sm_error_set(err, SM_ENONFINITE,
+                          "draco encode: vertex %lld coordinate %d is not a finite float",
+                          (long long)(i / 3), (int)(i % 3));
+  for (int64_t i = 0; i < 3 * (int64_t)m->nf; i++)
+    if (m->F[i] < 0 || m->F[i] >= m->nv)
+      return sm_error_set(err, SM_ERANGE,
+                          "draco encode: face %lld refers to vertex %d, mesh has %d",
+                          (long long)(i / 3), (int)m->F[i], (int)m->nv);
+  return 0;
+}
+
+std::unique_ptr<draco::Mesh> to_draco(const sm_mesh *m) {
+  std::unique_ptr<draco::Mesh> dm(new draco::Mesh());
+  dm->set_num_points((uint32_t)m->nv);
+  draco::GeometryAttribute ga;
+  ga.Init(draco::GeometryAttribute::POSITION, nullptr, 3, draco::DT_FLOAT32, false,
+          3 * sizeof(float), 0);
+  int att = dm->AddAttribute(ga, /*identity_mapping=*/true, (uint32_t)m->nv);
+  draco::PointAttribute *pa = dm->attribute(att);
+  for (int32_t v = 0; v < m->nv; v++) {
+    float p[3] = {(float)m->V[3 * v], (float)m->V[3 * v + 1], (float)m->V[3 * v + 2]};
+    pa->SetAttributeValue(draco::AttributeValueIndex((uint32_t)v), p);
+  }
+  dm->SetNumFaces((size_t)m->nf);
+  for (int32_t f = 0; f < m->nf; f++) {
+    draco::Mesh::Face face;
+    for (int c = 0; c < 3; c++) face[c] = draco::PointIndex((uint32_t)m->F[3 * f + c]);
+    dm->SetFace(draco::FaceIndex((uint32_t)f), face);
+  }
+  return dm;
+}
+
+int encode_impl(const sm_mesh *m, int quant_bits, uint8_t **buf, size_t *len, sm_error *err) {
+  int rc = check_encodable(m, err);
+  if (rc) return rc;
+  std::unique_ptr<draco::Mesh> dm = to_draco(m);
+  draco::Encoder enc;
+  enc.SetEncodingMethod(draco::MESH_SEQUENTIAL_ENCODING);
+  if (quant_bits > 0) enc.SetAttributeQuantization(draco::GeometryAttribute::POSITION, quant_bits);
+  draco::EncoderBuffer eb;
+  draco::Status st = enc.EncodeMeshToBuffer(*dm, &eb);
+  if (!st.ok()) return sm_error_set(err, SM_EFORMAT, "draco encode failed: %s", st.error_msg());
+  uint8_t *b = static_cast<uint8_t *>(std::malloc(eb.size() ? eb.size() : 1));
+  if (!b) return sm_error_set(err, SM_ENOMEM, "draco encode: cannot allocate %zu bytes", eb.size());
+  std::memcpy(b, eb.data(), eb.size());
+  *buf = b;
+  *len = eb.size();
+  return 0;
+}
+
+}  // namespace
+
+extern "C" int sm_draco_decode(const uint8_t *buf, size_t len, const sm_limits *lim,
+                               sm_mesh **out, sm_error *err) {
+  if (!out || (!buf && len)) return sm_error_set(err, SM_EINVAL, "sm_draco_decode: null argument");
+  *out = NULL;
+  if (len == 0) return sm_error_set(err, SM_EFORMAT, "draco: empty buffer");
+  try {
+    return decode_impl(buf, len, lim, out, err);
+  } catch (const std::bad_alloc &) {
+    return sm_error_set(err, SM_ENOMEM, "draco: out of memory while decoding %zu bytes", len);
+  } catch (const std::exception &e) {
+    return sm_error_set(err, SM_EFORMAT, "draco: decode failed: %s", e.what());
+  } catch (...) {
+    return sm_error_set(err, SM_EFORMAT, "draco: decode failed with an unknown exception");
+  }
+}
+
+extern "C" int sm_draco_encode(const sm_mesh *m, int quant_bits, uint8_t **buf, size_t *len,
+                               sm_error *err) {
+  if (!m || !buf || !len) return sm_error_set(err, SM_EINVAL, "sm_draco_encode: null argument");
+  *buf = NULL;
+  *len = 0;
+  if (quant_bits < 0 || quant_bits > 30)
+    return sm_error_set(err, SM_EINVAL, "draco encode: quant_bits=%d, must be 0..30", quant_bits);
+  try {
+    return encode_impl(m, quant_bits, buf, len, err);
+  } catch (const std::bad_alloc &) {
+    return sm_error_set(err, SM_ENOMEM, "draco encode: out of memory");
+  } catch (const std::exception &e) {
+    return sm_error_set(err, SM_EFORMAT, "draco encode failed: %s", e.what());
+  } catch (...) {
+    return sm_error_set(err, SM_EFORMAT, "draco encode failed with an unknown exception");
+  }
+}
