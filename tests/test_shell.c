@@ -243,6 +243,52 @@ static void test_fd(void) {
   free_case(&grid);
 }
 
+/* Bumpy grid(3,3) plus a fin: one more face on an interior edge, which makes that edge
+ * non-manifold (no hinge) while the others keep theirs. */
+static sm_mesh *grid_with_fin(void) {
+  sm_mesh *g = bumpy_grid(3, 3, 17), *m;
+  REQUIRE(sm_mesh_alloc(g->nv + 1, g->nf + 1, NULL, &m, NULL) == SM_OK);
+  memcpy(m->V, g->V, (size_t)g->nv * 3 * sizeof(double));
+  memcpy(m->F, g->F, (size_t)g->nf * 3 * sizeof(int32_t));
+  int32_t a = 5, b = 6; /* interior vertices of the 4x4-vertex grid, joined by an edge */
+  double *x = m->V + 3 * g->nv;
+  for (int d = 0; d < 3; d++) x[d] = 0.5 * (g->V[3 * a + d] + g->V[3 * b + d]);
+  x[1] += 0.05;
+  x[2] += 0.3;
+  m->F[3 * g->nf] = a;
+  m->F[3 * g->nf + 1] = b;
+  m->F[3 * g->nf + 2] = g->nv;
+  sm_mesh_destroy(g);
+  return m;
+}
+
+static void test_nonmanifold_and_mismatch(void) {
+  shell_case c = make_case(grid_with_fin());
+  CHECK(c.topo->n_nonmanifold == 1);
+  check_fd("grid(3,3) + fin (non-manifold edge)", &c, params(1, 3, 1));
+  /* the triplets hold exactly one block per edge, vertex and hinge diamond */
+  sm_shell_params p = params(1, 1, 1);
+  sm_triplets t;
+  REQUIRE(sm_triplets_init(&t, 3 * c.m->nv, 0) == SM_OK);
+  REQUIRE(sm_shell_hessian(c.m, c.topo, &p, &t, NULL) == SM_OK);
+  CHECK(t.len == 9LL * c.topo->ne + 6LL * c.m->nv + 9LL * c.topo->nhinge);
+  sm_triplets_free(&t);
+  /* a topology built from another mesh with the same vertex count is rejected */
+  shell_case o = make_case(bumpy_grid(3, 3, 17));
+  int32_t perm[16];
+  tm_permutation(perm, o.m->nv, 5);
+  sm_mesh *pm = tm_permuted(o.m, perm);
+  REQUIRE(pm);
+  sm_error err;
+  REQUIRE(sm_triplets_init(&t, 3 * pm->nv, 0) == SM_OK);
+  CHECK(sm_shell_hessian(pm, o.topo, &p, &t, &err) == SM_EINVAL);
+  CHECK(strstr(err.msg, "topology") != NULL);
+  sm_triplets_free(&t);
+  sm_mesh_destroy(pm);
+  free_case(&o);
+  free_case(&c);
+}
+
 static void test_kernel(void) {
   sm_shell_params p;
   sm_shell_params_default(&p);
@@ -251,6 +297,7 @@ static void test_kernel(void) {
   free_case(&s);
   shell_case sj = make_case(jittered(tm_icosphere(2), 0.02, 3));
   CHECK(kernel_dim("icosphere(2) jittered", &sj, p) == 6);
+  free_case(&sj);
   sm_mesh *a = tm_icosphere(1), *b = tm_icosphere(2);
   shell_case u = make_case(tm_union(a, b, 3.0));
   sm_mesh_destroy(a);
@@ -308,6 +355,7 @@ int main(void) {
   free_case(&ico);
   free_case(&grid);
   test_fd();
+  test_nonmanifold_and_mismatch();
   test_kernel();
   test_timing();
   return sm_test_finish();
