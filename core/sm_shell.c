@@ -8,7 +8,7 @@
  *     W = mu/2 (tr D - log1p(delta)) + lambda/4 (delta - log1p(delta)),  delta = det G - 1,
  *   which equals the W of the spec (expand a = 2 + tr D, d = 1 + delta). E then has relative
  *   rounding error ~eps/|x - x_bar| instead of absolute error ~eps, which is what lets a
- *   second-difference test of the Hessian reach ~1e-9. Bending uses the signed dihedral
+ *   second-difference test of the Hessian reach ~1e-12 (Richardson, h = 1e-4). Bending uses the signed dihedral
  *   theta = atan2((N1 x N2).e, |e| N1.N2) with unnormalised face normals N (atan2 is
  *   invariant under a common positive scale of its arguments; N1 x N2 is parallel to e).
  *
