@@ -440,6 +440,7 @@ typedef struct ply_header {
   int nelems;
   ply_elem elems[PLY_MAX_ELEMS];
   long long nv, nf;
+  int seen_vertex;
   int xyz_float32; /* x, y, z all float32: OpenMesh reads them exactly */
   size_t body;     /* offset of the first byte after end_header */
 } ply_header;
@@ -507,6 +508,7 @@ static int ply_element(tcur *c, ply_header *h, sm_error *err) {
   e->is_vertex = wordeq(w, n, "vertex");
   e->is_face = wordeq(w, n, "face");
   if (read_long(c, &e->count) || e->count < 0) return syntax_error(c, err, "bad element count");
+  if (e->is_vertex && h->seen_vertex++) return syntax_error(c, err, "second vertex element");
   if (e->is_vertex) h->nv = e->count;
   if (e->is_face) h->nf = e->count;
   return 0;
@@ -664,7 +666,8 @@ static int ply_pass(const char *name, const char *buf, size_t len, const ply_hea
   ply_rd r = {{buf + h->body, buf + len, name, 0}, h->format};
   long long vi = 0;
   for (int i = 0; i < h->nelems; i++)
-    for (long long item = 0; item < h->elems[i].count; item++) {
+    /* An element without properties takes no bytes; a huge count must not spin. */
+    for (long long item = 0; h->elems[i].nprops && item < h->elems[i].count; item++) {
       int rc = ply_item(&r, &h->elems[i], item, &vi, fn, err);
       if (rc) return rc;
     }

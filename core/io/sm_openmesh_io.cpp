@@ -9,6 +9,10 @@
  *   usual bookkeeping (some readers use the returned handles afterwards). The recorded
  *   arrays, not OpenMesh's mesh, become the sm_mesh.
  *
+ *   OpenMesh's readers are process-wide singletons that keep per-read state in mutable
+ *   members (_PLYReader_::elements_, vertexCount_, ...), so two reads at once would race;
+ *   one mutex serialises the OpenMesh parse (the rest of the module stays parallel).
+ *
  *   Points are recorded in double. OpenMesh's text parsers round to float32, which is why
  *   sm_meshio.c keeps its own readers for the text formats.
  */
@@ -147,8 +151,15 @@ int read_impl(const uint8_t *buf, size_t len, const char *ext, int binary, const
   RecordingImporter rec(mesh);
   OpenMesh::IO::Options opt;
   if (binary) opt += OpenMesh::IO::Options::Binary;
-  if (!OpenMesh::IO::IOManager().read(in, std::string(".") + ext, rec, opt))
-    return sm_error_set(err, SM_EFORMAT, "%s: OpenMesh could not parse the content", ext);
+  static std::mutex reader_lock;
+  bool ok;
+  {
+    std::lock_guard<std::mutex> hold(reader_lock);
+    ok = OpenMesh::IO::IOManager().read(in, std::string(".") + ext, rec, opt);
+  }
+  if (!ok) return sm_error_set(err, SM_EFORMAT, "%s: OpenMesh could not parse the content", ext);
+  for (int32_t s : rec.poly_size)
+    if (s < 3) return sm_error_set(err, SM_EFORMAT, "%s: a face has %d corners", ext, (int)s);
   if (n_polygons) *n_polygons = (int64_t)rec.poly_size.size();
   return to_sm_mesh(rec, ext, lim, out, err);
 }
