@@ -1,0 +1,52 @@
+/* sm_coarse: the axiomatic coarse functional map from descriptors (algorithm.md §5) and the
+ * orientation test of a point map.
+ *
+ * With C (k0 x k0) carrying LB coefficients of functions on Y to their pull-back on X
+ * (C a_Y ~ a_X), minimize
+ *   w_desc ||C A_Y - A_X||^2 + w_lap sum_ij C_ij^2 (lambda^Y_j - lambda^X_i)^2 / |.|
+ *   + w_comm sum_f ||C O^Y_f - O^X_f C||^2 + w_orient sum_f ||C R^Y_f - s R^X_f C||^2
+ * A = Phi^T M D (descriptor coefficients), O_f = Phi^T M diag(f) Phi (multiplication by
+ * descriptor f, Nogneng-Ovsjanikov 2017), R_f = Phi^T M (g -> <n, grad f x grad g>) Phi
+ * (orientation operator, Ren et al. 2018). s = +1 asks for an orientation-preserving map,
+ * s = -1 for an orientation-reversing one (a mirror, e.g. a shape's intrinsic symmetry).
+ * The energy is quadratic in C: it is minimized by conjugate gradients on its normal
+ * equations, matrix-free.
+ *
+ * Contract: meshes (cleaned, normalized) and LB bases (gram_L == NULL) are borrowed, read
+ * only; descriptor arrays are n x nd column-major (sm_desc). C is caller-provided, k0 x k0
+ * column-major. Thread-safe (no shared state). Errors: SM_EINVAL, SM_ENOMEM.
+ */
+#ifndef SM_COARSE_H
+#define SM_COARSE_H
+
+#include <stdint.h>
+
+#include "sm_basis.h"
+#include "sm_error.h"
+#include "sm_mesh.h"
+
+typedef struct sm_coarse_opts {
+  int k0;           /* LB functions used */
+  int op_stride;    /* operators are built for every op_stride-th descriptor */
+  double w_desc, w_lap, w_comm, w_orient;
+  int orient_sign;  /* +1 preserving, -1 reversing */
+  int cg_iters;     /* conjugate-gradient iterations cap */
+} sm_coarse_opts;
+
+void sm_coarse_opts_default(sm_coarse_opts *o);
+
+typedef struct sm_coarse_side {
+  const sm_mesh *mesh;
+  const sm_basis *lb;
+  const double *desc; /* n x nd column-major */
+} sm_coarse_side;
+
+int sm_coarse_fmap(const sm_coarse_side *x, const sm_coarse_side *y, int nd,
+                   const sm_coarse_opts *o, double *C, sm_error *err);
+
+/* Area-weighted mean, over X's faces, of the sign agreement between the image triangle
+ * (T[a], T[b], T[c]) taken in Y and Y's vertex normals there: +1 = every face keeps its
+ * orientation, -1 = a mirror. Faces whose image is degenerate count 0. */
+double sm_map_orientation_score(const sm_mesh *X, const sm_mesh *Y, const int32_t *T);
+
+#endif
