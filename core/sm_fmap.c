@@ -1,0 +1,538 @@
+/* sm_fmap: functional maps in (non-)orthogonal bases and ZoomOut. See sm_fmap.h.
+ *
+ * DESIGN
+ *   Whitening. With u_i = L^-1 Phi[i,:]^T (a triangular solve per shape), the basis becomes
+ *   L2-orthonormal: U M U^T = L^-1 A L^-T = I. Because L is lower triangular, the first k
+ *   entries of u_i equal L_k^-1 Phi[i,:k]^T, so the coordinates are computed once at the
+ *   largest k and truncated for every smaller k. In them
+ *     C = A^-1 Phi^T M Psi[T]  <=>  Cw = L_A^T C L_B^-T = U_X M U_Y[T]^T,
+ *     b_j = L_A^T C B^-1 Psi_j = L_A^T C L_B^-T L_B^-1 Psi_j = Cw u^Y_j,
+ *   so each ZoomOut iteration is two GEMMs (fit, embedding) and a kNN query, whatever the
+ *   basis. The public one-shot P -> C follows the spec literally (Cholesky solve with the
+ *   leading block of gram_L); the tests check both forms agree.
+ *   Sampled fit. On a farthest-point sample S with cell masses w_s, the least squares
+ *   min sum_s w_s |Phi_s C - Psi_T(s)|^2 becomes Cw = G_s^-1 U_S^T W U_Y[T_S]^T with
+ *   G_s = U_S^T W U_S, factored once at the largest k (leading blocks again).
+ */
+#include "sm_fmap.h"
+
+#include <cblas.h>
+#include <lapacke.h>
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "sm_eigs.h" /* sm_now */
+
+/* ---- checks ------------------------------------------------------------------------- */
+
+static int check_pair(const sm_basis *x, const sm_basis *y, int k, sm_error *err) {
+  if (!x || !y || !x->phi || !y->phi || !x->mass)
+    return sm_error_set(err, SM_EINVAL, "fmap: missing basis");
+  if (k < 1 || k > x->k || k > y->k)
+    return sm_error_set(err, SM_EINVAL, "fmap: k=%d outside [1, min(%d, %d)]", k, x->k, y->k);
+  return 0;
+}
+
+static int check_map(const int32_t *T, int32_t n, int32_t ny, sm_error *err) {
+  if (!T) return sm_error_set(err, SM_EINVAL, "fmap: missing point map");
+  for (int32_t i = 0; i < n; i++)
+    if (T[i] < 0 || T[i] >= ny)
+      return sm_error_set(err, SM_ERANGE, "fmap: T[%d]=%d outside the %d target vertices", i,
+                          T[i], ny);
+  return 0;
+}
+
+/* All pairs must describe the same X and the same Y. */
+static int check_pairs(const sm_fmap_pair *pairs, int np, sm_error *err) {
+  if (!pairs || np < 1 || np > SM_FMAP_MAX_PAIRS)
+    return sm_error_set(err, SM_EINVAL, "fmap: %d basis pairs (1 to %d)", np, SM_FMAP_MAX_PAIRS);
+  for (int p = 0; p < np; p++) {
+    int rc = check_pair(pairs[p].x, pairs[p].y, pairs[p].k, err);
+    if (rc) return rc;
+    if (pairs[p].weight < 0 || !isfinite(pairs[p].weight))
+      return sm_error_set(err, SM_EINVAL, "fmap: pair %d weight %g", p, pairs[p].weight);
+    const sm_basis *x0 = pairs[0].x, *y0 = pairs[0].y, *x = pairs[p].x, *y = pairs[p].y;
+    if (x->n != x0->n || x->mesh_hash != x0->mesh_hash || y->n != y0->n ||
+        y->mesh_hash != y0->mesh_hash)
+      return sm_error_set(err, SM_EINVAL, "fmap: pair %d is not on the meshes of pair 0", p);
+  }
+  return 0;
+}
+
+static double pair_weight(const sm_fmap_pair *p) { return p->weight > 0 ? p->weight : 1.0; }
+
+/* ---- whitened coordinates and map conversions --------------------------------------- */
+
+/* Rows r < nr of U (row-major, stride ld >= k): u = L_k^-1 Phi[v,:k]^T for v = rows[r]
+ * (rows NULL: v = r), scaled by s. */
+static void whiten(const sm_basis *b, int k, const int32_t *rows, int32_t nr, double s,
+                   double *U, int ld) {
+  for (int32_t r = 0; r < nr; r++) {
+    int32_t v = rows ? rows[r] : r;
+    for (int c = 0; c < k; c++) U[(size_t)r * ld + c] = s * b->phi[(size_t)c * b->n + v];
+  }
+  /* Row-major nr x ld is column-major ld x nr: the k leading entries of each column. */
+  if (b->gram_L)
+    cblas_dtrsm(CblasColMajor, CblasLeft, CblasLower, CblasNoTrans, CblasNonUnit, k, nr, 1.0,
+                b->gram_L, b->k, U, ld);
+}
+
+/* Cw = L_A^T C L_B^-T (k x k column-major). */
+static void to_white(const sm_basis *x, const sm_basis *y, int k, const double *C, double *Cw) {
+  memcpy(Cw, C, (size_t)k * k * sizeof(double));
+  if (y->gram_L)
+    cblas_dtrsm(CblasColMajor, CblasRight, CblasLower, CblasTrans, CblasNonUnit, k, k, 1.0,
+                y->gram_L, y->k, Cw, k);
+  if (x->gram_L)
+    cblas_dtrmm(CblasColMajor, CblasLeft, CblasLower, CblasTrans, CblasNonUnit, k, k, 1.0,
+                x->gram_L, x->k, Cw, k);
+}
+
+/* C = L_A^-T Cw L_B^T. */
+static void from_white(const sm_basis *x, const sm_basis *y, int k, const double *Cw, double *C) {
+  memcpy(C, Cw, (size_t)k * k * sizeof(double));
+  if (x->gram_L)
+    cblas_dtrsm(CblasColMajor, CblasLeft, CblasLower, CblasTrans, CblasNonUnit, k, k, 1.0,
+                x->gram_L, x->k, C, k);
+  if (y->gram_L)
+    cblas_dtrmm(CblasColMajor, CblasRight, CblasLower, CblasTrans, CblasNonUnit, k, k, 1.0,
+                y->gram_L, y->k, C, k);
+}
+
+/* E[r, :k] = s * Cw U[r, :k] for nr rows (row-major; Cw column-major read as Cw^T). */
+static void apply_map(const double *U, int ldu, int32_t nr, int k, const double *Cw, double s,
+                      double *E, int lde) {
+  cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, nr, k, k, s, U, ldu, Cw, k, 0.0, E,
+              lde);
+}
+
+/* T[i] = cand[nearest row of EY to row i of EX] (cand NULL: identity). */
+static int assign(const double *EY, int32_t ny, const double *EX, int32_t nx, int D,
+                  const int32_t *cand, const sm_knn_opts *ko, int32_t *T, sm_error *err) {
+  sm_knn *ix = NULL;
+  int rc = sm_knn_build(EY, ny, D, ko, &ix, err);
+  if (rc) return rc;
+  rc = sm_knn_query(ix, EX, nx, 1, T, NULL, err);
+  sm_knn_destroy(ix);
+  if (rc || !cand) return rc;
+  for (int32_t i = 0; i < nx; i++) T[i] = cand[T[i]];
+  return 0;
+}
+
+/* ---- one-shot P -> C, C -> P, embeddings --------------------------------------------- */
+
+int sm_fmap_from_p2p(const sm_basis *x, const sm_basis *y, int k, const int32_t *T, double *C,
+                     sm_error *err) {
+  int rc = check_pair(x, y, k, err);
+  if (!rc) rc = check_map(T, x->n, y->n, err);
+  if (rc) return rc;
+  if (!C) return sm_error_set(err, SM_EINVAL, "fmap: missing output C");
+  int32_t n = x->n;
+  double *Z = malloc((size_t)n * k * sizeof(double));
+  if (!Z) return sm_error_set(err, SM_ENOMEM, "fmap: %d x %d pulled-back functions", n, k);
+  for (int c = 0; c < k; c++)
+    for (int32_t i = 0; i < n; i++)
+      Z[(size_t)c * n + i] = x->mass[i] * y->phi[(size_t)c * y->n + T[i]];
+  cblas_dgemm(CblasColMajor, CblasTrans, CblasNoTrans, k, k, n, 1.0, x->phi, n, Z, n, 0.0, C, k);
+  free(Z);
+  if (x->gram_L) {
+    /* A_k = L_k L_k^T: the leading block of the stored factor, never an inverse. */
+    int info = LAPACKE_dpotrs(LAPACK_COL_MAJOR, 'L', k, k, x->gram_L, x->k, C, k);
+    if (info) return sm_error_set(err, SM_ENUMERIC, "fmap: dpotrs failed (info %d)", info);
+  }
+  return 0;
+}
+
+int sm_fmap_embed_x(const sm_basis *x, int k, double *E_x, int ld, sm_error *err) {
+  if (!x || !x->phi || k < 1 || k > x->k || !E_x || ld < k)
+    return sm_error_set(err, SM_EINVAL, "fmap: bad X embedding arguments (k=%d, ld=%d)", k, ld);
+  whiten(x, k, NULL, x->n, 1.0, E_x, ld);
+  return 0;
+}
+
+/* E_y rows = s * Cw u^Y_j: the Y half of the embedding of one pair. */
+static int embed_y_scaled(const sm_basis *x, const sm_basis *y, int k, const double *C,
+                          double s, double *E_y, int ld, sm_error *err) {
+  double *U = malloc((size_t)y->n * k * sizeof(double));
+  double *Cw = malloc((size_t)k * k * sizeof(double));
+  if (!U || !Cw) {
+    free(U);
+    free(Cw);
+    return sm_error_set(err, SM_ENOMEM, "fmap: Y embedding (%d x %d)", y->n, k);
+  }
+  whiten(y, k, NULL, y->n, 1.0, U, k);
+  to_white(x, y, k, C, Cw);
+  apply_map(U, k, y->n, k, Cw, s, E_y, ld);
+  free(U);
+  free(Cw);
+  return 0;
+}
+
+int sm_fmap_embed_y(const sm_basis *x, const sm_basis *y, int k, const double *C, double *E_y,
+                    int ld, sm_error *err) {
+  int rc = check_pair(x, y, k, err);
+  if (rc) return rc;
+  if (!C || !E_y || ld < k)
+    return sm_error_set(err, SM_EINVAL, "fmap: bad Y embedding arguments (ld=%d)", ld);
+  return embed_y_scaled(x, y, k, C, 1.0, E_y, ld, err);
+}
+
+int sm_fmap_to_p2p(const sm_fmap_pair *pairs, int npairs, const double *const *C, int32_t *T,
+                   int32_t *T_yx, const sm_knn_opts *ko, sm_error *err) {
+  int rc = check_pairs(pairs, npairs, err);
+  if (rc) return rc;
+  if (!C || !T) return sm_error_set(err, SM_EINVAL, "fmap: missing C or T");
+  int D = 0;
+  for (int p = 0; p < npairs; p++) {
+    if (!C[p]) return sm_error_set(err, SM_EINVAL, "fmap: missing C for pair %d", p);
+    D += pairs[p].k;
+  }
+  int32_t nx = pairs[0].x->n, ny = pairs[0].y->n;
+  double *EX = malloc((size_t)nx * D * sizeof(double));
+  double *EY = malloc((size_t)ny * D * sizeof(double));
+  if (!EX || !EY) {
+    rc = sm_error_set(err, SM_ENOMEM, "fmap: embeddings of dimension %d", D);
+    goto done;
+  }
+  for (int p = 0, off = 0; p < npairs && !rc; off += pairs[p].k, p++) {
+    double s = pair_weight(&pairs[p]);
+    whiten(pairs[p].x, pairs[p].k, NULL, nx, s, EX + off, D);
+    rc = embed_y_scaled(pairs[p].x, pairs[p].y, pairs[p].k, C[p], s, EY + off, D, err);
+  }
+  if (!rc) rc = assign(EY, ny, EX, nx, D, NULL, ko, T, err);
+  if (!rc && T_yx) rc = assign(EX, nx, EY, ny, D, NULL, ko, T_yx, err);
+done:
+  free(EX);
+  free(EY);
+  return rc;
+}
+
+/* ---- farthest-point sampling -------------------------------------------------------- */
+
+static double sqdist(const double *a, const double *b, int dim) {
+  double s = 0;
+  for (int t = 0; t < dim; t++) s += (a[t] - b[t]) * (a[t] - b[t]);
+  return s;
+}
+
+static int32_t argmax(const double *a, int32_t n) {
+  int32_t best = 0;
+  for (int32_t i = 1; i < n; i++)
+    if (a[i] > a[best]) best = i;
+  return best;
+}
+
+/* ns samples S of the n points P (row stride ldp, first dim coordinates), greedy
+ * farthest-first from the point farthest from point 0; cellw[s] = mass of the points whose
+ * nearest sample is S[s]. O(n ns dim). */
+static int fps(const double *P, int32_t n, int dim, int ldp, const double *mass, int32_t ns,
+               int32_t *S, double *cellw, sm_error *err) {
+  double *md = malloc((size_t)n * sizeof(double));
+  int32_t *owner = malloc((size_t)n * sizeof(int32_t));
+  if (!md || !owner) {
+    free(md);
+    free(owner);
+    return sm_error_set(err, SM_ENOMEM, "fmap: farthest-point sampling of %d points", n);
+  }
+  for (int32_t i = 0; i < n; i++) md[i] = sqdist(P + (size_t)i * ldp, P, dim);
+  S[0] = argmax(md, n);
+  for (int32_t s = 0; s < ns; s++) {
+    const double *c = P + (size_t)S[s] * ldp;
+    for (int32_t i = 0; i < n; i++) {
+      double d = sqdist(P + (size_t)i * ldp, c, dim);
+      if (s == 0 || d < md[i]) {
+        md[i] = d;
+        owner[i] = s;
+      }
+    }
+    if (s + 1 < ns) S[s + 1] = argmax(md, n);
+  }
+  for (int32_t s = 0; s < ns; s++) cellw[s] = 0;
+  for (int32_t i = 0; i < n; i++) cellw[owner[i]] += mass[i];
+  free(md);
+  free(owner);
+  return 0;
+}
+
+/* ---- ZoomOut -------------------------------------------------------------------------- */
+
+void sm_zoomout_opts_default(sm_zoomout_opts *o) {
+  memset(o, 0, sizeof *o);
+  o->step = 1;
+  o->nsample_x = 2000;
+  o->nsample_y = 0;
+  sm_knn_opts_default(&o->knn);
+}
+
+typedef struct zpair {
+  const sm_basis *x, *y;
+  int K, k0, k;  /* final, first and current k */
+  double w;
+  double *UX;    /* n_X x K whitened X coordinates */
+  double *UY;    /* n_Y x K whitened Y coordinates */
+  double *UYc;   /* candidate rows of UY (the Y samples), or NULL = UY */
+  double *UF;    /* fit rows x K: sqrt(cell mass) u^X */
+  double *GF;    /* K x K Cholesky factor of UF^T UF, NULL when the fit set is all of X */
+  double *Cw;    /* K x K current whitened map */
+} zpair;
+
+typedef struct zctx {
+  const sm_zoomout_opts *o;
+  int np, Dmax, niter;
+  zpair p[SM_FMAP_MAX_PAIRS];
+  int32_t nx, ny;
+  int32_t nfit, ncand; /* fit set (X samples or all X); Y candidates of intermediate steps */
+  int32_t *fit;        /* X samples, or NULL = all */
+  int32_t *cand;       /* Y samples, or NULL = all */
+  double *sqw;         /* nfit: sqrt of the fit weights */
+  int32_t *Tfit;       /* current map on the fit set, global Y indices */
+  double *EX, *EY, *Z;
+  sm_zoomout_stats st;
+} zctx;
+
+static void zctx_free(zctx *z) {
+  for (int p = 0; p < z->np; p++) {
+    zpair *q = &z->p[p];
+    free(q->UX);
+    free(q->UY);
+    free(q->UYc);
+    free(q->UF);
+    free(q->GF);
+    free(q->Cw);
+  }
+  free(z->fit);
+  free(z->cand);
+  free(z->sqw);
+  free(z->Tfit);
+  free(z->EX);
+  free(z->EY);
+  free(z->Z);
+}
+
+static int check_zoomout(const sm_fmap_pair *pairs, int np, const sm_zoomout_opts *o,
+                         const int32_t *T0, int32_t *T, sm_error *err) {
+  int rc = check_pairs(pairs, np, err);
+  if (rc) return rc;
+  if (!o || o->step < 1 || o->nsample_x < 0 || o->nsample_y < 0 || !T)
+    return sm_error_set(err, SM_EINVAL, "zoomout: bad options (step %d, samples %d/%d)",
+                        o ? o->step : 0, o ? o->nsample_x : 0, o ? o->nsample_y : 0);
+  for (int p = 0; p < np; p++)
+    if (pairs[p].k0 < 1 || pairs[p].k0 > pairs[p].k)
+      return sm_error_set(err, SM_EINVAL, "zoomout: pair %d k0=%d outside [1, k=%d]", p,
+                          pairs[p].k0, pairs[p].k);
+  return check_map(T0, pairs[0].x->n, pairs[0].y->n, err);
+}
+
+/* k of pair p at iteration t. */
+static int k_at(const zctx *z, int p, int t) {
+  const zpair *q = &z->p[p];
+  if (p == 0) {
+    long k = q->k0 + (long)t * z->o->step;
+    return k < q->K ? (int)k : q->K;
+  }
+  if (z->niter == 1) return q->K;
+  return q->k0 + (int)lround((double)(q->K - q->k0) * t / (z->niter - 1));
+}
+
+static int zalloc_pair(zctx *z, zpair *q, const sm_fmap_pair *in, sm_error *err) {
+  q->x = in->x;
+  q->y = in->y;
+  q->K = in->k;
+  q->k0 = in->k0;
+  q->w = pair_weight(in);
+  q->UX = malloc((size_t)z->nx * q->K * sizeof(double));
+  q->UY = malloc((size_t)z->ny * q->K * sizeof(double));
+  q->Cw = malloc((size_t)q->K * q->K * sizeof(double));
+  if (!q->UX || !q->UY || !q->Cw)
+    return sm_error_set(err, SM_ENOMEM, "zoomout: whitened coordinates (k=%d)", q->K);
+  whiten(q->x, q->K, NULL, z->nx, 1.0, q->UX, q->K);
+  whiten(q->y, q->K, NULL, z->ny, 1.0, q->UY, q->K);
+  return 0;
+}
+
+/* Chooses the X fit set and the Y candidates (farthest-point samples or everything). */
+static int zsample(zctx *z, sm_error *err) {
+  const sm_zoomout_opts *o = z->o;
+  const zpair *q = &z->p[0];
+  int32_t nsx = o->nsample_x > 0 && o->nsample_x < z->nx ? o->nsample_x : z->nx;
+  int32_t nsy = o->nsample_y > 0 && o->nsample_y < z->ny ? o->nsample_y : z->ny;
+  z->nfit = nsx;
+  z->ncand = nsy;
+  z->sqw = malloc((size_t)nsx * sizeof(double));
+  if (!z->sqw) return sm_error_set(err, SM_ENOMEM, "zoomout: %d weights", nsx);
+  int rc = 0;
+  if (nsx < z->nx) {
+    z->fit = malloc((size_t)nsx * sizeof(int32_t));
+    if (!z->fit) return sm_error_set(err, SM_ENOMEM, "zoomout: %d samples", nsx);
+    rc = o->pos_x ? fps(o->pos_x, z->nx, 3, 3, q->x->mass, nsx, z->fit, z->sqw, err)
+                  : fps(q->UX, z->nx, q->k0, q->K, q->x->mass, nsx, z->fit, z->sqw, err);
+  } else {
+    memcpy(z->sqw, q->x->mass, (size_t)nsx * sizeof(double));
+  }
+  for (int32_t s = 0; s < nsx; s++) z->sqw[s] = sqrt(z->sqw[s]);
+  if (rc || nsy == z->ny) return rc;
+  double *cw = malloc((size_t)nsy * sizeof(double));
+  z->cand = malloc((size_t)nsy * sizeof(int32_t));
+  if (!cw || !z->cand) {
+    free(cw);
+    return sm_error_set(err, SM_ENOMEM, "zoomout: %d Y samples", nsy);
+  }
+  rc = o->pos_y ? fps(o->pos_y, z->ny, 3, 3, q->y->mass, nsy, z->cand, cw, err)
+                : fps(q->UY, z->ny, q->k0, q->K, q->y->mass, nsy, z->cand, cw, err);
+  free(cw);
+  return rc;
+}
+
+/* Per pair: the weighted fit rows, their Gram factor (sampled fit only), the candidate
+ * rows of Y. */
+static int zfit_setup(zctx *z, zpair *q, sm_error *err) {
+  int K = q->K;
+  q->UF = malloc((size_t)z->nfit * K * sizeof(double));
+  if (!q->UF) return sm_error_set(err, SM_ENOMEM, "zoomout: fit rows");
+  for (int32_t s = 0; s < z->nfit; s++) {
+    int32_t v = z->fit ? z->fit[s] : s;
+    for (int c = 0; c < K; c++) q->UF[(size_t)s * K + c] = z->sqw[s] * q->UX[(size_t)v * K + c];
+  }
+  if (z->cand) {
+    q->UYc = malloc((size_t)z->ncand * K * sizeof(double));
+    if (!q->UYc) return sm_error_set(err, SM_ENOMEM, "zoomout: candidate rows");
+    for (int32_t s = 0; s < z->ncand; s++)
+      memcpy(q->UYc + (size_t)s * K, q->UY + (size_t)z->cand[s] * K, K * sizeof(double));
+  }
+  if (!z->fit) return 0; /* U M U^T = I on the whole shape */
+  q->GF = malloc((size_t)K * K * sizeof(double));
+  if (!q->GF) return sm_error_set(err, SM_ENOMEM, "zoomout: sample Gram");
+  /* UF row-major nfit x K is column-major K x nfit: G = UF_col UF_col^T. */
+  cblas_dsyrk(CblasColMajor, CblasLower, CblasNoTrans, K, z->nfit, 1.0, q->UF, K, 0.0, q->GF, K);
+  int info = LAPACKE_dpotrf(LAPACK_COL_MAJOR, 'L', K, q->GF, K);
+  if (info)
+    return sm_error_set(err, SM_ENUMERIC,
+                        "zoomout: Gram of %d samples not positive definite at k=%d (column %d); "
+                        "use more samples",
+                        z->nfit, K, info);
+  return 0;
+}
+
+static int zsetup(zctx *z, const sm_fmap_pair *pairs, const int32_t *T0, sm_error *err) {
+  double t0 = sm_now();
+  int rc = 0;
+  for (int p = 0; p < z->np && !rc; p++) rc = zalloc_pair(z, &z->p[p], &pairs[p], err);
+  if (!rc) rc = zsample(z, err);
+  for (int p = 0; p < z->np && !rc; p++) rc = zfit_setup(z, &z->p[p], err);
+  if (rc) return rc;
+  int Kmax = 0;
+  z->Dmax = 0;
+  for (int p = 0; p < z->np; p++) {
+    z->Dmax += z->p[p].K;
+    if (z->p[p].K > Kmax) Kmax = z->p[p].K;
+  }
+  z->Tfit = malloc((size_t)z->nfit * sizeof(int32_t));
+  z->EX = malloc((size_t)z->nx * z->Dmax * sizeof(double));
+  z->EY = malloc((size_t)z->ny * z->Dmax * sizeof(double));
+  z->Z = malloc((size_t)z->nfit * Kmax * sizeof(double));
+  if (!z->Tfit || !z->EX || !z->EY || !z->Z)
+    return sm_error_set(err, SM_ENOMEM, "zoomout: embeddings (%d + %d rows x %d)", z->nx, z->ny,
+                        z->Dmax);
+  for (int32_t s = 0; s < z->nfit; s++) z->Tfit[s] = T0[z->fit ? z->fit[s] : s];
+  z->st.t_setup = sm_now() - t0;
+  return 0;
+}
+
+/* P -> C in whitened coordinates on the fit set: Cw = G^-1 UF^T (sqrt(w) U_Y[Tfit]). */
+static int zfmap(zctx *z, zpair *q, sm_error *err) {
+  int k = q->k, K = q->K;
+  for (int32_t s = 0; s < z->nfit; s++) {
+    const double *u = q->UY + (size_t)z->Tfit[s] * K;
+    for (int c = 0; c < k; c++) z->Z[(size_t)s * k + c] = z->sqw[s] * u[c];
+  }
+  cblas_dgemm(CblasColMajor, CblasNoTrans, CblasTrans, k, k, z->nfit, 1.0, q->UF, K, z->Z, k,
+              0.0, q->Cw, k);
+  if (!q->GF) return 0;
+  int info = LAPACKE_dpotrs(LAPACK_COL_MAJOR, 'L', k, k, q->GF, K, q->Cw, k);
+  return info ? sm_error_set(err, SM_ENUMERIC, "zoomout: dpotrs failed (info %d)", info) : 0;
+}
+
+/* Embeds the queries (X samples, or all) and the candidates (Y samples, or all). */
+static void zembed(zctx *z, int full, int D) {
+  int32_t nq = full || !z->fit ? z->nx : z->nfit;
+  int32_t nc = full || !z->cand ? z->ny : z->ncand;
+  for (int p = 0, off = 0; p < z->np; off += z->p[p].k, p++) {
+    const zpair *q = &z->p[p];
+    for (int32_t r = 0; r < nq; r++) {
+      int32_t v = full || !z->fit ? r : z->fit[r];
+      const double *u = q->UX + (size_t)v * q->K;
+      double *e = z->EX + (size_t)r * D + off;
+      for (int c = 0; c < q->k; c++) e[c] = q->w * u[c];
+    }
+    const double *UY = full || !z->cand ? q->UY : q->UYc;
+    apply_map(UY, q->K, nc, q->k, q->Cw, q->w, z->EY + off, D);
+  }
+}
+
+/* One iteration: fit every pair at its k, embed, assign. The last one maps all of X. */
+static int ziterate(zctx *z, int t, int32_t *T, sm_error *err) {
+  int last = t == z->niter - 1, D = 0, rc = 0;
+  double t0 = sm_now();
+  for (int p = 0; p < z->np && !rc; p++) {
+    z->p[p].k = k_at(z, p, t);
+    D += z->p[p].k;
+    rc = zfmap(z, &z->p[p], err);
+  }
+  if (rc) return rc;
+  double t1 = sm_now();
+  zembed(z, last, D);
+  double t2 = sm_now();
+  int32_t nq = last || !z->fit ? z->nx : z->nfit;
+  int32_t nc = last || !z->cand ? z->ny : z->ncand;
+  int32_t *out = last ? T : z->Tfit;
+  rc = assign(z->EY, nc, z->EX, nq, D, last ? NULL : z->cand, &z->o->knn, out, err);
+  z->st.t_fmap += t1 - t0;
+  z->st.t_embed += t2 - t1;
+  z->st.t_knn += sm_now() - t2;
+  return rc;
+}
+
+/* Optional outputs after the last iteration: C per pair, and the Y -> X assignment. */
+static int zfinish(zctx *z, double *const *C_out, int32_t *T_yx, sm_error *err) {
+  int D = 0;
+  for (int p = 0; p < z->np; p++) {
+    D += z->p[p].k;
+    if (C_out && C_out[p]) from_white(z->p[p].x, z->p[p].y, z->p[p].k, z->p[p].Cw, C_out[p]);
+  }
+  if (!T_yx) return 0;
+  double t0 = sm_now();
+  int rc = assign(z->EX, z->nx, z->EY, z->ny, D, NULL, &z->o->knn, T_yx, err);
+  z->st.t_knn += sm_now() - t0;
+  return rc;
+}
+
+int sm_zoomout(const sm_fmap_pair *pairs, int npairs, const sm_zoomout_opts *o,
+               const int32_t *T0, int32_t *T, double *const *C_out, int32_t *T_yx,
+               sm_zoomout_stats *st, sm_error *err) {
+  int rc = check_zoomout(pairs, npairs, o, T0, T, err);
+  if (rc) return rc;
+  double t_start = sm_now();
+  zctx z;
+  memset(&z, 0, sizeof z);
+  z.o = o;
+  z.np = npairs;
+  z.nx = pairs[0].x->n;
+  z.ny = pairs[0].y->n;
+  z.niter = (pairs[0].k - pairs[0].k0 + o->step - 1) / o->step + 1;
+  rc = zsetup(&z, pairs, T0, err);
+  for (int t = 0; t < z.niter && !rc; t++) {
+    if (o->cancel && o->cancel(o->cancel_ud)) {
+      rc = sm_error_set(err, SM_ECANCELED, "zoomout: canceled before iteration %d of %d", t,
+                        z.niter);
+      break;
+    }
+    rc = ziterate(&z, t, T, err);
+    z.st.iterations = t + 1;
+  }
+  if (!rc) rc = zfinish(&z, C_out, T_yx, err);
+  z.st.t_total = sm_now() - t_start;
+  if (st) *st = z.st;
+  zctx_free(&z);
+  return rc;
+}

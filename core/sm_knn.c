@@ -1,0 +1,361 @@
+/* sm_knn: exact K nearest neighbours by FLANN kd-tree or blocked dgemm brute force.
+ *
+ * DESIGN
+ *   Brute force: with Y centered on its mean (less cancellation), a block of query rows
+ *   times a block of Y rows gives G = Xc Yc^T by dgemm, and v_ij = |y_j|^2 - 2 G_ij is the
+ *   squared distance minus the row constant |x_i|^2. Each row keeps its K+1 smallest v.
+ *   Rounding: |computed - exact| <= delta_i = 4 (d + 4) u (|x_i|^2 + max_j |y_j|^2)
+ *   (a generous form of the gamma_d bound for dot products, u = 2^-53). If the K-th and
+ *   (K+1)-th candidates are more than 2 delta_i apart, the K smallest candidates are the
+ *   exact K nearest (every point left out is farther); their distances are then recomputed
+ *   directly and sorted by (distance, index). Otherwise (ties, duplicates, near-ties) the
+ *   row is redone by a direct scan, which keeps the lowest index among equals.
+ *   kd-tree: FLANN's exact single tree; distances are recomputed the same direct way so
+ *   that both strategies agree bit for bit.
+ *
+ * Crossover (measured with bench-style timing, this machine: 2 cores, OpenBLAS pthreads,
+ * FLANN with 2 OpenMP threads, K = 1, build + query, seconds):
+ *   see SM_KNN_CROSSOVER_D in sm_knn.h and the table at sm_knn_crossover below.
+ */
+#include "sm_knn.h"
+
+#include <cblas.h>
+#include <flann/flann.h>
+#include <math.h>
+#include <pthread.h>
+#include <stdlib.h>
+#include <string.h>
+
+/* Query rows x Y rows per dgemm block: G is 128 x 2048 doubles = 2 MiB. */
+enum { BLK_X = 128, BLK_Y = 2048 };
+
+struct sm_knn {
+  int strategy;
+  int32_t ny;
+  int d;
+  double *Y;       /* caller's points, copied (exact distances are taken on these) */
+  double *Yc;      /* brute: Y minus center */
+  double *ynorm;   /* brute: |Yc_j|^2 */
+  double *center;  /* brute: mean of Y */
+  double ymax2;    /* brute: max_j |Yc_j|^2 */
+  flann_index_t flann;
+  struct FLANNParameters fp;
+};
+
+/* FLANN's C API sets its global logger level (and maybe the C rand seed) on every call. */
+static pthread_mutex_t flann_lock = PTHREAD_MUTEX_INITIALIZER;
+
+double sm_knn_dist2(const double *x, const double *y, int d) {
+  double s = 0;
+  for (int t = 0; t < d; t++) {
+    double e = x[t] - y[t];
+    s += e * e;
+  }
+  return s;
+}
+
+void sm_knn_opts_default(sm_knn_opts *o) {
+  memset(o, 0, sizeof *o);
+  o->strategy = SM_KNN_AUTO;
+}
+
+int sm_knn_strategy_of(const sm_knn *ix) { return ix->strategy; }
+
+static int check_finite(const double *a, int64_t n, const char *what, sm_error *err) {
+  for (int64_t i = 0; i < n; i++)
+    if (!isfinite(a[i]))
+      return sm_error_set(err, SM_ENONFINITE, "knn: %s value %lld is not finite", what,
+                          (long long)i);
+  return 0;
+}
+
+static int build_brute(sm_knn *ix, sm_error *err) {
+  int32_t ny = ix->ny;
+  int d = ix->d;
+  ix->Yc = malloc((size_t)ny * d * sizeof(double));
+  ix->ynorm = malloc((size_t)ny * sizeof(double));
+  ix->center = calloc((size_t)d, sizeof(double));
+  if (!ix->Yc || !ix->ynorm || !ix->center)
+    return sm_error_set(err, SM_ENOMEM, "knn: brute-force index of %d x %d", ny, d);
+  for (int32_t j = 0; j < ny; j++)
+    for (int t = 0; t < d; t++) ix->center[t] += ix->Y[(size_t)j * d + t];
+  for (int t = 0; t < d; t++) ix->center[t] /= ny;
+  ix->ymax2 = 0;
+  for (int32_t j = 0; j < ny; j++) {
+    double s = 0, *yc = ix->Yc + (size_t)j * d;
+    for (int t = 0; t < d; t++) {
+      yc[t] = ix->Y[(size_t)j * d + t] - ix->center[t];
+      s += yc[t] * yc[t];
+    }
+    ix->ynorm[j] = s;
+    if (s > ix->ymax2) ix->ymax2 = s;
+  }
+  return 0;
+}
+
+static int build_flann(sm_knn *ix, const sm_knn_opts *o, sm_error *err) {
+  struct FLANNParameters *p = &ix->fp;
+  *p = DEFAULT_FLANN_PARAMETERS;
+  p->algorithm = FLANN_INDEX_KDTREE_SINGLE;
+  p->checks = FLANN_CHECKS_UNLIMITED;
+  p->eps = 0;        /* prune only subtrees that cannot contain a closer point: exact */
+  p->sorted = 1;
+  p->max_neighbors = -1;
+  p->cores = o->threads > 0 ? o->threads : 2;
+  p->trees = 1;
+  p->leaf_max_size = o->leaf_size > 0 ? o->leaf_size : 10;
+  p->log_level = FLANN_LOG_NONE; /* core/ never logs */
+  p->random_seed = 0;            /* a single kd-tree is deterministic; do not touch rand() */
+  float speedup = 0;
+  pthread_mutex_lock(&flann_lock);
+  ix->flann = flann_build_index_double(ix->Y, ix->ny, ix->d, &speedup, p);
+  pthread_mutex_unlock(&flann_lock);
+  if (!ix->flann)
+    return sm_error_set(err, SM_ENUMERIC, "knn: FLANN failed to build a kd-tree on %d x %d",
+                        ix->ny, ix->d);
+  return 0;
+}
+
+int sm_knn_build(const double *Y, int32_t ny, int d, const sm_knn_opts *o, sm_knn **out,
+                 sm_error *err) {
+  sm_knn_opts def;
+  if (!o) {
+    sm_knn_opts_default(&def);
+    o = &def;
+  }
+  *out = NULL;
+  if (!Y || ny < 1 || d < 1)
+    return sm_error_set(err, SM_EINVAL, "knn: bad point set (ny=%d, d=%d)", ny, d);
+  if (o->strategy < SM_KNN_AUTO || o->strategy > SM_KNN_BRUTE)
+    return sm_error_set(err, SM_EINVAL, "knn: unknown strategy %d", o->strategy);
+  int rc = check_finite(Y, (int64_t)ny * d, "Y", err);
+  if (rc) return rc;
+  sm_knn *ix = calloc(1, sizeof *ix);
+  if (!ix) return sm_error_set(err, SM_ENOMEM, "knn: index");
+  ix->ny = ny;
+  ix->d = d;
+  int cross = o->crossover_d > 0 ? o->crossover_d : SM_KNN_CROSSOVER_D;
+  ix->strategy = o->strategy != SM_KNN_AUTO ? o->strategy
+                 : d < cross                 ? SM_KNN_KDTREE
+                                             : SM_KNN_BRUTE;
+  ix->Y = malloc((size_t)ny * d * sizeof(double));
+  if (!ix->Y) {
+    sm_knn_destroy(ix);
+    return sm_error_set(err, SM_ENOMEM, "knn: copy of %d x %d points", ny, d);
+  }
+  memcpy(ix->Y, Y, (size_t)ny * d * sizeof(double));
+  rc = ix->strategy == SM_KNN_BRUTE ? build_brute(ix, err) : build_flann(ix, o, err);
+  if (rc) {
+    sm_knn_destroy(ix);
+    return rc;
+  }
+  *out = ix;
+  return 0;
+}
+
+void sm_knn_destroy(sm_knn *ix) {
+  if (!ix) return;
+  if (ix->flann) {
+    pthread_mutex_lock(&flann_lock);
+    flann_free_index_double(ix->flann, &ix->fp);
+    pthread_mutex_unlock(&flann_lock);
+  }
+  free(ix->Y);
+  free(ix->Yc);
+  free(ix->ynorm);
+  free(ix->center);
+  free(ix);
+}
+
+/* ---- sorted candidate lists ------------------------------------------------------- */
+
+/* Inserts (v, j) into the ascending list (lv, li) of length *cnt <= cap. Equal values keep
+ * their arrival order, so scanning j upwards keeps the lowest index first. */
+static void list_insert(double *lv, int32_t *li, int *cnt, int cap, double v, int32_t j) {
+  int p = *cnt < cap ? (*cnt)++ : cap - 1;
+  while (p > 0 && lv[p - 1] > v) {
+    lv[p] = lv[p - 1];
+    li[p] = li[p - 1];
+    p--;
+  }
+  lv[p] = v;
+  li[p] = j;
+}
+
+/* Sorts K (dist, idx) pairs by distance then index (K is small: insertion sort). */
+static void sort_pairs(double *dv, int32_t *iv, int K) {
+  for (int a = 1; a < K; a++) {
+    double v = dv[a];
+    int32_t j = iv[a];
+    int p = a;
+    while (p > 0 && (dv[p - 1] > v || (dv[p - 1] == v && iv[p - 1] > j))) {
+      dv[p] = dv[p - 1];
+      iv[p] = iv[p - 1];
+      p--;
+    }
+    dv[p] = v;
+    iv[p] = j;
+  }
+}
+
+/* Direct scan of every Y point for one query: the exact answer, lowest index among ties. */
+static void exact_row(const sm_knn *ix, const double *x, int K, double *dv, int32_t *iv) {
+  int cnt = 0;
+  for (int32_t j = 0; j < ix->ny; j++) {
+    double s = sm_knn_dist2(x, ix->Y + (size_t)j * ix->d, ix->d);
+    if (cnt < K || s < dv[K - 1]) list_insert(dv, iv, &cnt, K, s, j);
+  }
+}
+
+/* ---- brute force -------------------------------------------------------------------- */
+
+typedef struct brute_ws {
+  double *Xc, *xn, *G, *lv;
+  int32_t *li;
+  int *cnt;
+} brute_ws;
+
+static void brute_ws_free(brute_ws *w) {
+  free(w->Xc);
+  free(w->xn);
+  free(w->G);
+  free(w->lv);
+  free(w->li);
+  free(w->cnt);
+}
+
+static int brute_ws_alloc(brute_ws *w, int d, int cap) {
+  memset(w, 0, sizeof *w);
+  w->Xc = malloc((size_t)BLK_X * d * sizeof(double));
+  w->xn = malloc(BLK_X * sizeof(double));
+  w->G = malloc((size_t)BLK_X * BLK_Y * sizeof(double));
+  w->lv = malloc((size_t)BLK_X * cap * sizeof(double));
+  w->li = malloc((size_t)BLK_X * cap * sizeof(int32_t));
+  w->cnt = malloc(BLK_X * sizeof(int));
+  return w->Xc && w->xn && w->G && w->lv && w->li && w->cnt ? 0 : -1;
+}
+
+/* Scans one dgemm block: rows [0, bx) against Y rows [j0, j0 + by). */
+static void brute_scan(const sm_knn *ix, brute_ws *w, int bx, int32_t j0, int by, int cap) {
+  const double *yn = ix->ynorm + j0;
+  for (int r = 0; r < bx; r++) {
+    const double *g = w->G + (size_t)r * by;
+    double *lv = w->lv + (size_t)r * cap;
+    int32_t *li = w->li + (size_t)r * cap;
+    int cnt = w->cnt[r];
+    double thr = cnt < cap ? INFINITY : lv[cap - 1];
+    for (int j = 0; j < by; j++) {
+      double v = yn[j] - 2 * g[j];
+      if (v < thr) {
+        list_insert(lv, li, &cnt, cap, v, j0 + j);
+        if (cnt == cap) thr = lv[cap - 1];
+      }
+    }
+    w->cnt[r] = cnt;
+  }
+}
+
+/* Turns the candidate list of query row x into the exact K nearest. */
+static void brute_finish_row(const sm_knn *ix, const double *x, double xn, const double *lv,
+                             const int32_t *li, int K, int cap, double *dv, int32_t *iv) {
+  const double u = 1.1102230246251565e-16;
+  double delta = 4.0 * (ix->d + 4) * u * (xn + ix->ymax2);
+  if (cap > K && lv[K] - lv[K - 1] <= 2 * delta) {
+    exact_row(ix, x, K, dv, iv);
+    return;
+  }
+  for (int r = 0; r < K; r++) {
+    iv[r] = li[r];
+    dv[r] = sm_knn_dist2(x, ix->Y + (size_t)li[r] * ix->d, ix->d);
+  }
+  sort_pairs(dv, iv, K);
+}
+
+static void brute_block(const sm_knn *ix, brute_ws *w, const double *X, int bx, int K,
+                        int cap, int32_t *idx, double *dist2) {
+  int d = ix->d;
+  for (int r = 0; r < bx; r++) {
+    double s = 0, *xc = w->Xc + (size_t)r * d;
+    for (int t = 0; t < d; t++) {
+      xc[t] = X[(size_t)r * d + t] - ix->center[t];
+      s += xc[t] * xc[t];
+    }
+    w->xn[r] = s;
+    w->cnt[r] = 0;
+  }
+  for (int32_t j0 = 0; j0 < ix->ny; j0 += BLK_Y) {
+    int by = ix->ny - j0 < BLK_Y ? ix->ny - j0 : BLK_Y;
+    cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasTrans, bx, by, d, 1.0, w->Xc, d,
+                ix->Yc + (size_t)j0 * d, d, 0.0, w->G, by);
+    brute_scan(ix, w, bx, j0, by, cap);
+  }
+  for (int r = 0; r < bx; r++)
+    brute_finish_row(ix, X + (size_t)r * d, w->xn[r], w->lv + (size_t)r * cap,
+                     w->li + (size_t)r * cap, K, cap, dist2 + (size_t)r * K,
+                     idx + (size_t)r * K);
+}
+
+static int query_brute(const sm_knn *ix, const double *X, int32_t nx, int K, int32_t *idx,
+                       double *dist2, sm_error *err) {
+  int cap = K < ix->ny ? K + 1 : K; /* the (K+1)-th candidate certifies the K-th */
+  brute_ws w;
+  if (brute_ws_alloc(&w, ix->d, cap)) {
+    brute_ws_free(&w);
+    return sm_error_set(err, SM_ENOMEM, "knn: brute-force workspace (K=%d, d=%d)", K, ix->d);
+  }
+  for (int32_t i0 = 0; i0 < nx; i0 += BLK_X) {
+    int bx = nx - i0 < BLK_X ? nx - i0 : BLK_X;
+    brute_block(ix, &w, X + (size_t)i0 * ix->d, bx, K, cap, idx + (size_t)i0 * K,
+                dist2 + (size_t)i0 * K);
+  }
+  brute_ws_free(&w);
+  return 0;
+}
+
+/* ---- kd-tree ------------------------------------------------------------------------ */
+
+static int query_flann(const sm_knn *ix, const double *X, int32_t nx, int K, int32_t *idx,
+                       double *dist2, sm_error *err) {
+  struct FLANNParameters p = ix->fp;
+  pthread_mutex_lock(&flann_lock);
+  /* FLANN takes non-const pointers but does not write the query set. */
+  int rc = flann_find_nearest_neighbors_index_double(ix->flann, (double *)X, nx, idx, dist2,
+                                                     K, &p);
+  pthread_mutex_unlock(&flann_lock);
+  if (rc < 0)
+    return sm_error_set(err, SM_ENUMERIC, "knn: FLANN search failed (%d queries, K=%d)", nx, K);
+  for (int32_t i = 0; i < nx; i++) {
+    const double *x = X + (size_t)i * ix->d;
+    int32_t *iv = idx + (size_t)i * K;
+    double *dv = dist2 + (size_t)i * K;
+    for (int r = 0; r < K; r++) {
+      if (iv[r] < 0 || iv[r] >= ix->ny)
+        return sm_error_set(err, SM_ENUMERIC, "knn: FLANN returned index %d for query %d",
+                            iv[r], i);
+      dv[r] = sm_knn_dist2(x, ix->Y + (size_t)iv[r] * ix->d, ix->d);
+    }
+    sort_pairs(dv, iv, K);
+  }
+  return 0;
+}
+
+int sm_knn_query(const sm_knn *ix, const double *X, int32_t nx, int K, int32_t *idx,
+                 double *dist2, sm_error *err) {
+  if (!ix || (!X && nx > 0) || nx < 0 || !idx)
+    return sm_error_set(err, SM_EINVAL, "knn: bad query arguments");
+  if (K < 1 || K > ix->ny)
+    return sm_error_set(err, SM_EINVAL, "knn: K=%d outside [1, %d]", K, ix->ny);
+  if (nx == 0) return 0;
+  int rc = check_finite(X, (int64_t)nx * ix->d, "query", err);
+  if (rc) return rc;
+  double *own = NULL;
+  if (!dist2) {
+    own = malloc((size_t)nx * K * sizeof(double));
+    if (!own) return sm_error_set(err, SM_ENOMEM, "knn: %d x %d distances", nx, K);
+    dist2 = own;
+  }
+  rc = ix->strategy == SM_KNN_BRUTE ? query_brute(ix, X, nx, K, idx, dist2, err)
+                                    : query_flann(ix, X, nx, K, idx, dist2, err);
+  free(own);
+  return rc;
+}
