@@ -63,6 +63,14 @@ static void start_vector(double *r, int32_t n) {
   }
 }
 
+static void set_ordering(cholmod_common *c, int ordering) {
+  static const int method[] = {0, CHOLMOD_AMD, CHOLMOD_METIS, CHOLMOD_NESDIS};
+  if (ordering <= 0 || ordering > 3) return;
+  c->nmethods = 1;
+  c->method[0].ordering = method[ordering];
+  c->postorder = 1;
+}
+
 typedef struct solver {
   cholmod_common c;
   cholmod_factor *L;
@@ -139,7 +147,7 @@ static int lanczos_alloc(lanczos *lz, int n, int nev, int ncv) {
 
 static int run_lanczos(solver *sv, lanczos *lz, const sm_eigs_opts *o, sm_eigs_stats *st,
                        sm_error *err) {
-  double tol = o->tol > 0 ? o->tol : 1e-10;
+  double tol = o->tol > 0 ? o->tol : 1e-9;
   int ido = 0, info = 1; /* info = 1: use our start vector */
   lz->iparam[0] = 1;     /* exact shifts */
   lz->iparam[2] = o->maxiter > 0 ? o->maxiter : 1000;
@@ -194,7 +202,9 @@ int sm_eigs_smallest(const sm_csc *A, const double *D, const sm_eigs_opts *o, do
                         "problem", o->nev, n, n);
   if (!(o->sigma < 0))
     return sm_error_set(err, SM_EINVAL, "eigensolver: shift %g must be negative", o->sigma);
-  int ncv = o->ncv > 0 ? o->ncv : 2 * o->nev + 1;
+  /* ncv ~ 1.3 nev measured best on homerA (elastic, nev = 112): 239 operator applications
+   * at ncv = 140 against 283 at the textbook 2 nev + 1, and far less orthogonalization. */
+  int ncv = o->ncv > 0 ? o->ncv : o->nev + (o->nev / 3 > 20 ? o->nev / 3 : 20);
   if (ncv < o->nev + 2) ncv = o->nev + 2;
   if (ncv > n) ncv = n;
 
@@ -204,6 +214,7 @@ int sm_eigs_smallest(const sm_csc *A, const double *D, const sm_eigs_opts *o, do
   cholmod_start(&sv.c);
   sv.c.print = 0;
   sv.c.error_handler = NULL;
+  set_ordering(&sv.c, o->ordering);
   double *s = malloc((size_t)n * sizeof *s);
   sv.tmp = malloc((size_t)n * sizeof *sv.tmp);
   lanczos lz;

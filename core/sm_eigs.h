@@ -23,12 +23,15 @@
 #include "sm_error.h"
 #include "sm_sparse.h"
 
+enum { SM_ORDER_DEFAULT = 0, SM_ORDER_AMD = 1, SM_ORDER_METIS = 2, SM_ORDER_NESDIS = 3 };
+
 typedef struct sm_eigs_opts {
   int nev;          /* eigenpairs wanted */
   double sigma;     /* shift, < smallest eigenvalue */
-  double tol;       /* ARPACK relative tolerance (0 = 1e-10) */
+  double tol;       /* ARPACK relative tolerance (0 = 1e-9) */
   int ncv;          /* Lanczos vectors (0 = automatic) */
   int maxiter;      /* restarts (0 = automatic) */
+  int ordering;     /* fill-reducing ordering: SM_ORDER_* (0 = CHOLMOD's default choice) */
   int (*cancel)(void *ud);
   void *cancel_ud;
 } sm_eigs_opts;
