@@ -1,0 +1,901 @@
+/* Sparse log-domain Sinkhorn with eps annealing (algorithm.md §5; Schmitzer, "Stabilized
+ * sparse scaling algorithms for entropy regularized transport problems", SISC 2019).
+ *
+ * Log-domain updates. With P_ij = exp((f_i + g_j - C_ij)/eps), the row marginal of i is
+ *     r_i = exp(f_i/eps) S_i,   S_i = sum_{j in S(i)} exp((g_j - C_ij)/eps).
+ * Balanced: r_i = a_i gives f_i = eps (log a_i - log S_i) (and symmetrically for g_j).
+ * Unbalanced (penalty rho KL(P1|a)): stationarity of the dual
+ *     -rho sum_i a_i (exp(-f_i/rho) - 1) - ... - eps sum_ij P_ij
+ * in f_i reads a_i exp(-f_i/rho) = r_i, i.e. f_i = lam eps (log a_i - log S_i),
+ * lam = rho/(rho + eps) (lam = 1 is the balanced case). log S_i is a log-sum-exp taken
+ * after subtracting the row maximum of (g_j - C_ij), so its largest term is exactly 1:
+ * nothing overflows or underflows to an empty sum at any eps. Terms below exp(-SK_CUT)
+ * relative to the maximum are below the double rounding of the sum and are skipped, which
+ * saves most exp() calls once eps is small.
+ * The residual sum_i |r_i - a_i exp(-f_i/rho)| (L1 marginal error when balanced) comes
+ * for free from the same sums, before f is overwritten.
+ */
+#include "sm_sinkhorn.h"
+
+#include <cblas.h>
+#include <flann/flann.h>
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "sm_eigs.h" /* sm_now */
+
+#define SK_DEFAULT_K 16
+#define SK_DEFAULT_EPS_START 1.0
+#define SK_DEFAULT_EPS_END 1e-2
+#define SK_DEFAULT_DECAY 0.5
+#define SK_DEFAULT_MAX_ITER 50
+#define SK_DEFAULT_TOL 1e-6
+#define SK_MID_TOL 1e-3      /* intermediate levels only warm-start the next one */
+#define SK_LAST_LEVEL_MULT 4 /* the last level gets this many times max_iter */
+#define SK_CUT 40.0          /* exp(-40) = 4e-18 < DBL_EPSILON / 50 */
+#define SK_KDTREE_MAX_D 16   /* exact kd-trees stop pruning well above this */
+#define SK_MASS_TOL 1e-6
+#define SK_BLOCK_ROWS 128    /* brute-force distance blocks: 128 x 1024 doubles = 1 MB */
+#define SK_BLOCK_COLS 1024
+#define SK_AXIS_SAMPLE 2048  /* points per set used to find the backbone axis */
+#define SK_AXIS_ITERS 12
+#define SK_RETRUNC_MAX_PER_POINT 256
+#define SK_RETRUNC_ROUNDS 8
+#define SK_BIJ_MIN_SCORE 1e-6
+
+void sm_sinkhorn_opts_default(sm_sinkhorn_opts *o) {
+  memset(o, 0, sizeof *o);
+  o->k = SK_DEFAULT_K;
+  o->eps_start = SK_DEFAULT_EPS_START;
+  o->eps_end = SK_DEFAULT_EPS_END;
+  o->decay = SK_DEFAULT_DECAY;
+  o->max_iter = SK_DEFAULT_MAX_ITER;
+  o->tol = SK_DEFAULT_TOL;
+  o->knn = SM_KNN_AUTO;
+  o->threads = 1;
+}
+
+/* ---------------------------------------------------------------- pair lists */
+
+/* (i, j) candidates of the support; bit 0 of flag = "K-NN entry" (vs backbone). */
+typedef struct sk_pairs {
+  int32_t *i, *j;
+  uint8_t *flag;
+  int64_t len, cap;
+} sk_pairs;
+
+static void pairs_free(sk_pairs *p) {
+  free(p->i);
+  free(p->j);
+  free(p->flag);
+  memset(p, 0, sizeof *p);
+}
+
+static int pairs_reserve(sk_pairs *p, int64_t extra) {
+  if (p->len + extra <= p->cap) return 0;
+  int64_t cap = p->cap ? p->cap : 1024;
+  while (cap < p->len + extra) cap *= 2;
+  int32_t *ni = realloc(p->i, (size_t)cap * sizeof *ni);
+  if (ni) p->i = ni;
+  int32_t *nj = realloc(p->j, (size_t)cap * sizeof *nj);
+  if (nj) p->j = nj;
+  uint8_t *nf = realloc(p->flag, (size_t)cap);
+  if (nf) p->flag = nf;
+  if (!ni || !nj || !nf) return SM_ENOMEM;
+  p->cap = cap;
+  return 0;
+}
+
+static inline void pairs_put(sk_pairs *p, int32_t i, int32_t j, uint8_t flag) {
+  p->i[p->len] = i;
+  p->j[p->len] = j;
+  p->flag[p->len] = flag;
+  p->len++;
+}
+
+/* ---------------------------------------------------------------- nearest neighbours */
+
+static void topk_insert(double *dist, int32_t *id, int k, double dv, int32_t j) {
+  int t = k - 1;
+  while (t > 0 && dist[t - 1] > dv) {
+    dist[t] = dist[t - 1];
+    id[t] = id[t - 1];
+    t--;
+  }
+  dist[t] = dv;
+  id[t] = j;
+}
+
+/* Squared distances block by block: D (ni x nj, leading dim SK_BLOCK_COLS) =
+ * |x|^2 + |y|^2 - 2 X Y^T, the product by dgemm. The visitor sees approximate values
+ * (cancellation); callers that need exact costs recompute them. */
+typedef void (*sk_block_fn)(void *ctx, int32_t i0, int32_t ni, int32_t j0, int32_t nj,
+                            const double *D);
+
+static int scan_blocks(const double *F, int32_t nx, const double *G, int32_t ny, int32_t d,
+                       sk_block_fn fn, void *ctx) {
+  double *D = malloc(sizeof(double) * SK_BLOCK_ROWS * SK_BLOCK_COLS);
+  double *nf = malloc(sizeof(double) * (size_t)nx);
+  double *ng = malloc(sizeof(double) * (size_t)ny);
+  if (!D || !nf || !ng) {
+    free(D), free(nf), free(ng);
+    return SM_ENOMEM;
+  }
+  for (int32_t i = 0; i < nx; i++) nf[i] = cblas_ddot(d, F + (size_t)i * d, 1, F + (size_t)i * d, 1);
+  for (int32_t j = 0; j < ny; j++) ng[j] = cblas_ddot(d, G + (size_t)j * d, 1, G + (size_t)j * d, 1);
+  for (int32_t i0 = 0; i0 < nx; i0 += SK_BLOCK_ROWS) {
+    int32_t ni = nx - i0 < SK_BLOCK_ROWS ? nx - i0 : SK_BLOCK_ROWS;
+    for (int32_t j0 = 0; j0 < ny; j0 += SK_BLOCK_COLS) {
+      int32_t nj = ny - j0 < SK_BLOCK_COLS ? ny - j0 : SK_BLOCK_COLS;
+      cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasTrans, ni, nj, d, -2.0,
+                  F + (size_t)i0 * d, d, G + (size_t)j0 * d, d, 0.0, D, SK_BLOCK_COLS);
+      for (int32_t r = 0; r < ni; r++) {
+        double *row = D + (size_t)r * SK_BLOCK_COLS;
+        for (int32_t c = 0; c < nj; c++) row[c] += nf[i0 + r] + ng[j0 + c];
+      }
+      fn(ctx, i0, ni, j0, nj, D);
+    }
+  }
+  free(D), free(nf), free(ng);
+  return 0;
+}
+
+typedef struct sk_knn_ctx {
+  int kx, ky;           /* neighbours of each row among columns, of each column among rows */
+  double *rd, *cd;      /* nx*kx, ny*ky sorted ascending */
+  int32_t *ri, *ci;
+} sk_knn_ctx;
+
+static void knn_block(void *vctx, int32_t i0, int32_t ni, int32_t j0, int32_t nj,
+                      const double *D) {
+  sk_knn_ctx *c = vctx;
+  for (int32_t r = 0; r < ni; r++) {
+    int32_t i = i0 + r;
+    const double *row = D + (size_t)r * SK_BLOCK_COLS;
+    double *rd = c->rd + (size_t)i * c->kx;
+    int32_t *ri = c->ri + (size_t)i * c->kx;
+    for (int32_t q = 0; q < nj; q++) {
+      double dv = row[q];
+      int32_t j = j0 + q;
+      if (dv < rd[c->kx - 1]) topk_insert(rd, ri, c->kx, dv, j);
+      double *cd = c->cd + (size_t)j * c->ky;
+      if (dv < cd[c->ky - 1]) topk_insert(cd, c->ci + (size_t)j * c->ky, c->ky, dv, i);
+    }
+  }
+}
+
+/* Both directions from one exact brute-force scan. */
+static int knn_brute(const double *F, int32_t nx, const double *G, int32_t ny, int32_t d,
+                     int kx, int ky, int32_t *ri, int32_t *ci) {
+  sk_knn_ctx c = {kx, ky, malloc(sizeof(double) * (size_t)nx * kx),
+                  malloc(sizeof(double) * (size_t)ny * ky), ri, ci};
+  int rc = SM_ENOMEM;
+  if (c.rd && c.cd) {
+    for (int64_t t = 0; t < (int64_t)nx * kx; t++) c.rd[t] = INFINITY, ri[t] = 0;
+    for (int64_t t = 0; t < (int64_t)ny * ky; t++) c.cd[t] = INFINITY, ci[t] = 0;
+    rc = scan_blocks(F, nx, G, ny, d, knn_block, &c);
+  }
+  free(c.rd), free(c.cd);
+  return rc;
+}
+
+/* k nearest rows of data for each row of query, exact FLANN kd-tree. */
+static int knn_kdtree(const double *data, int32_t n, const double *query, int32_t m,
+                      int32_t d, int k, int threads, int32_t *idx, sm_error *err) {
+  struct FLANNParameters p = DEFAULT_FLANN_PARAMETERS;
+  p.algorithm = FLANN_INDEX_KDTREE_SINGLE;
+  p.checks = FLANN_CHECKS_UNLIMITED;
+  p.eps = 0.0f;
+  p.leaf_max_size = 10;
+  p.cores = threads > 0 ? threads : 1;
+  p.log_level = FLANN_LOG_NONE;
+  double *dist = malloc(sizeof(double) * (size_t)m * k);
+  if (!dist) return sm_error_set(err, SM_ENOMEM, "sinkhorn: no memory for %d-NN distances", k);
+  float speedup = 0;
+  /* FLANN's C API takes non-const pointers but only reads them. */
+  flann_index_t index = flann_build_index_double((double *)data, n, d, &speedup, &p);
+  if (!index) {
+    free(dist);
+    return sm_error_set(err, SM_ENUMERIC, "sinkhorn: FLANN could not build a kd-tree on %d points", n);
+  }
+  int rc = flann_find_nearest_neighbors_index_double(index, (double *)query, m, idx, dist, k, &p);
+  flann_free_index_double(index, &p);
+  free(dist);
+  if (rc < 0) return sm_error_set(err, SM_ENUMERIC, "sinkhorn: FLANN %d-NN search failed", k);
+  return 0;
+}
+
+static int add_knn_pairs(const double *F, int32_t nx, const double *G, int32_t ny, int32_t d,
+                         const sm_sinkhorn_opts *o, sk_pairs *pr, sm_error *err) {
+  int kx = o->k < ny ? o->k : ny, ky = o->k < nx ? o->k : nx;
+  int32_t *ri = malloc(sizeof(int32_t) * (size_t)nx * kx);
+  int32_t *ci = malloc(sizeof(int32_t) * (size_t)ny * ky);
+  int rc = SM_ENOMEM;
+  if (ri && ci) {
+    int kd = o->knn == SM_KNN_KDTREE || (o->knn == SM_KNN_AUTO && d <= SK_KDTREE_MAX_D);
+    if (kd) {
+      rc = knn_kdtree(G, ny, F, nx, d, kx, o->threads, ri, err);
+      if (!rc) rc = knn_kdtree(F, nx, G, ny, d, ky, o->threads, ci, err);
+    } else {
+      rc = knn_brute(F, nx, G, ny, d, kx, ky, ri, ci);
+    }
+  }
+  if (!rc) rc = pairs_reserve(pr, (int64_t)nx * kx + (int64_t)ny * ky);
+  if (!rc) {
+    for (int32_t i = 0; i < nx; i++)
+      for (int t = 0; t < kx; t++) pairs_put(pr, i, ri[(size_t)i * kx + t], 1);
+    for (int32_t j = 0; j < ny; j++)
+      for (int t = 0; t < ky; t++) pairs_put(pr, ci[(size_t)j * ky + t], j, 1);
+  }
+  free(ri), free(ci);
+  if (rc == SM_ENOMEM) return sm_error_set(err, rc, "sinkhorn: no memory for the neighbour lists");
+  return rc;
+}
+
+/* ---------------------------------------------------------------- feasibility backbone */
+
+typedef struct sk_key {
+  double v;
+  int32_t i;
+} sk_key;
+
+static int key_cmp(const void *pa, const void *pb) {
+  const sk_key *x = pa, *y = pb;
+  if (x->v != y->v) return x->v < y->v ? -1 : 1;
+  return (x->i > y->i) - (x->i < y->i);
+}
+
+/* Principal axis of the union of (subsamples of) F and G by power iteration: any axis
+ * gives a feasible backbone, a long one makes it geometrically sensible. */
+static void principal_axis(const double *F, int32_t nx, const double *G, int32_t ny,
+                           int32_t d, double *mu, double *v, double *w) {
+  const double *set[2] = {F, G};
+  int32_t n[2] = {nx, ny}, step[2];
+  double cnt = 0;
+  memset(mu, 0, sizeof(double) * (size_t)d);
+  for (int s = 0; s < 2; s++) {
+    step[s] = n[s] > SK_AXIS_SAMPLE ? n[s] / SK_AXIS_SAMPLE : 1;
+    for (int32_t p = 0; p < n[s]; p += step[s], cnt++)
+      for (int32_t t = 0; t < d; t++) mu[t] += set[s][(size_t)p * d + t];
+  }
+  for (int32_t t = 0; t < d; t++) mu[t] /= cnt, v[t] = 1.0 + 1e-3 * t; /* generic start */
+  for (int it = 0; it < SK_AXIS_ITERS; it++) {
+    memset(w, 0, sizeof(double) * (size_t)d);
+    for (int s = 0; s < 2; s++)
+      for (int32_t p = 0; p < n[s]; p += step[s]) {
+        const double *x = set[s] + (size_t)p * d;
+        double c = 0;
+        for (int32_t t = 0; t < d; t++) c += (x[t] - mu[t]) * v[t];
+        for (int32_t t = 0; t < d; t++) w[t] += c * (x[t] - mu[t]);
+      }
+    double nrm = 0;
+    for (int32_t t = 0; t < d; t++) nrm += w[t] * w[t];
+    if (!(nrm > 0)) return; /* all sampled points equal: keep v */
+    nrm = sqrt(nrm);
+    for (int32_t t = 0; t < d; t++) v[t] = w[t] / nrm;
+  }
+}
+
+static void sort_along(const double *X, int32_t n, int32_t d, const double *mu,
+                       const double *v, sk_key *key) {
+  for (int32_t p = 0; p < n; p++) {
+    double c = 0;
+    for (int32_t t = 0; t < d; t++) c += (X[(size_t)p * d + t] - mu[t]) * v[t];
+    key[p].v = c;
+    key[p].i = p;
+  }
+  qsort(key, (size_t)n, sizeof *key, key_cmp);
+}
+
+/* North-west-corner rule on the two sorted lists: the support of a feasible plan for
+ * (a, b) with at most nx + ny - 1 entries; every row and column appears. */
+static int add_backbone(const double *F, int32_t nx, const double *G, int32_t ny, int32_t d,
+                        const double *a, const double *b, sk_pairs *pr) {
+  double *tmp = malloc(sizeof(double) * 3 * (size_t)d);
+  sk_key *kx = malloc(sizeof(sk_key) * (size_t)nx), *ky = malloc(sizeof(sk_key) * (size_t)ny);
+  int rc = SM_ENOMEM;
+  if (tmp && kx && ky && !pairs_reserve(pr, (int64_t)nx + ny)) {
+    principal_axis(F, nx, G, ny, d, tmp, tmp + d, tmp + 2 * d);
+    sort_along(F, nx, d, tmp, tmp + d, kx);
+    sort_along(G, ny, d, tmp, tmp + d, ky);
+    int32_t i = 0, j = 0;
+    double ra = a[kx[0].i], rb = b[ky[0].i];
+    for (;;) {
+      pairs_put(pr, kx[i].i, ky[j].i, 0);
+      if (i == nx - 1 && j == ny - 1) break;
+      if (j == ny - 1 || (i < nx - 1 && ra < rb)) {
+        rb -= ra, ra = a[kx[++i].i];
+      } else if (i == nx - 1 || rb < ra) {
+        ra -= rb, rb = b[ky[++j].i];
+      } else {
+        ra = a[kx[++i].i], rb = b[ky[++j].i];
+      }
+    }
+    rc = 0;
+  }
+  free(tmp), free(kx), free(ky);
+  return rc;
+}
+
+/* ---------------------------------------------------------------- support (CSR + CSC) */
+
+typedef struct sk_support {
+  int32_t nx, ny;
+  int64_t nnz, nnz_knn;
+  int64_t *rowptr;
+  int32_t *col;
+  double *cost;    /* C_ij in CSR order */
+  int64_t *colptr; /* CSC transpose, rows sorted within a column */
+  int32_t *row;
+  double *ccost;   /* C_ij in CSC order */
+  int32_t maxlen;  /* longest row or column */
+  double c0;       /* mean cost over the K-NN entries */
+} sk_support;
+
+static void support_free(sk_support *s) {
+  free(s->rowptr), free(s->col), free(s->cost);
+  free(s->colptr), free(s->row), free(s->ccost);
+  memset(s, 0, sizeof *s);
+}
+
+static int i64_cmp(const void *pa, const void *pb) {
+  int64_t x = *(const int64_t *)pa, y = *(const int64_t *)pb;
+  return (x > y) - (x < y);
+}
+
+/* Sorts and deduplicates each row's keys (col << 1 | knn flag); returns the new length. */
+static int64_t dedup_row(int64_t *k, int64_t len) {
+  if (len <= 1) return len;
+  qsort(k, (size_t)len, sizeof *k, i64_cmp);
+  int64_t w = 0;
+  for (int64_t r = 0; r < len; r++) {
+    if (w > 0 && (k[w - 1] >> 1) == (k[r] >> 1))
+      k[w - 1] |= k[r] & 1;
+    else
+      k[w++] = k[r];
+  }
+  return w;
+}
+
+static double sqdist(const double *x, const double *y, int32_t d) {
+  double s = 0;
+  for (int32_t t = 0; t < d; t++) {
+    double e = x[t] - y[t];
+    s += e * e;
+  }
+  return s;
+}
+
+/* Row-sorted, deduplicated keys (col << 1 | knn flag) of the pair list and the CSR row
+ * pointers; *keys is allocated here. */
+static int csr_keys(const sk_pairs *pr, int32_t nx, int64_t *rowptr, int64_t **keys) {
+  int64_t *end = calloc((size_t)nx + 1, sizeof *end);
+  int64_t *key = malloc(sizeof(int64_t) * (size_t)(pr->len ? pr->len : 1));
+  if (!end || !key) {
+    free(end), free(key);
+    return SM_ENOMEM;
+  }
+  for (int64_t p = 0; p < pr->len; p++) end[pr->i[p] + 1]++;
+  for (int32_t i = 0; i < nx; i++) end[i + 1] += end[i];
+  for (int64_t p = 0; p < pr->len; p++)
+    key[end[pr->i[p]]++] = ((int64_t)pr->j[p] << 1) | pr->flag[p];
+  /* end[i] is now the end of row i; deduplicate and compact in place */
+  int64_t w = 0, beg = 0;
+  rowptr[0] = 0;
+  for (int32_t i = 0; i < nx; i++) {
+    int64_t len = dedup_row(key + beg, end[i] - beg);
+    memmove(key + w, key + beg, sizeof(int64_t) * (size_t)len);
+    beg = end[i];
+    w += len;
+    rowptr[i + 1] = w;
+  }
+  free(end);
+  *keys = key;
+  return 0;
+}
+
+/* Columns, exact costs, c0 and the CSC transpose from the keys. */
+static int fill_support(sk_support *s, const int64_t *key, const double *F, const double *G,
+                        int32_t d) {
+  double sum = 0;
+  for (int32_t i = 0; i < s->nx; i++) {
+    int64_t len = s->rowptr[i + 1] - s->rowptr[i];
+    if (len > s->maxlen) s->maxlen = (int32_t)len;
+    for (int64_t p = s->rowptr[i]; p < s->rowptr[i + 1]; p++) {
+      int32_t j = (int32_t)(key[p] >> 1);
+      s->col[p] = j;
+      s->cost[p] = sqdist(F + (size_t)i * d, G + (size_t)j * d, d);
+      if (key[p] & 1) s->nnz_knn++, sum += s->cost[p];
+      s->colptr[j + 1]++;
+    }
+  }
+  s->c0 = s->nnz_knn ? sum / (double)s->nnz_knn : 0.0;
+  for (int32_t j = 0; j < s->ny; j++) {
+    if (s->colptr[j + 1] > s->maxlen) s->maxlen = (int32_t)s->colptr[j + 1];
+    s->colptr[j + 1] += s->colptr[j];
+  }
+  int64_t *fill = malloc(sizeof(int64_t) * ((size_t)s->ny + 1));
+  if (!fill) return SM_ENOMEM;
+  memcpy(fill, s->colptr, sizeof(int64_t) * ((size_t)s->ny + 1));
+  for (int32_t i = 0; i < s->nx; i++)
+    for (int64_t p = s->rowptr[i]; p < s->rowptr[i + 1]; p++) {
+      int64_t q = fill[s->col[p]]++;
+      s->row[q] = i;
+      s->ccost[q] = s->cost[p];
+    }
+  free(fill);
+  return 0;
+}
+
+static int build_support(const sk_pairs *pr, const double *F, int32_t nx, const double *G,
+                         int32_t ny, int32_t d, sk_support *s) {
+  memset(s, 0, sizeof *s);
+  s->nx = nx, s->ny = ny;
+  s->rowptr = malloc(sizeof(int64_t) * ((size_t)nx + 1));
+  s->colptr = calloc((size_t)ny + 1, sizeof(int64_t));
+  int64_t *key = NULL;
+  if (!s->rowptr || !s->colptr || csr_keys(pr, nx, s->rowptr, &key)) goto oom;
+  s->nnz = s->rowptr[nx];
+  size_t nz = (size_t)(s->nnz ? s->nnz : 1);
+  s->col = malloc(sizeof(int32_t) * nz), s->cost = malloc(sizeof(double) * nz);
+  s->row = malloc(sizeof(int32_t) * nz), s->ccost = malloc(sizeof(double) * nz);
+  if (!s->col || !s->cost || !s->row || !s->ccost || fill_support(s, key, F, G, d)) goto oom;
+  free(key);
+  return 0;
+oom:
+  free(key);
+  support_free(s);
+  return SM_ENOMEM;
+}
+
+/* ---------------------------------------------------------------- iterations */
+
+/* One half-step for all rows (or, with the CSC arrays, all columns): own_i becomes
+ * lam eps (logm_i - log S_i) with S_i = sum_j exp((other_j - C_ij)/eps). Returns the
+ * residual sum_i |r_i - m_i exp(-own_i/rho)| of the duals it was given (inf when a
+ * changed support makes r_i overflow: harmless, the duals stay finite). z: scratch of the
+ * longest row; *sum accumulates the new duals (a cheap finiteness check). */
+static double lse_update(int32_t n, const int64_t *ptr, const int32_t *idx, const double *cost,
+                         const double *other, double *own, const double *logm, double eps,
+                         double lam, double inv_rho, double *z, double *sum) {
+  double inv_eps = 1.0 / eps, res = 0.0;
+  for (int32_t i = 0; i < n; i++) {
+    int64_t p0 = ptr[i], len = ptr[i + 1] - p0;
+    if (len == 0) continue;
+    double m = -INFINITY;
+    for (int64_t q = 0; q < len; q++) {
+      double v = other[idx[p0 + q]] - cost[p0 + q];
+      z[q] = v;
+      if (v > m) m = v;
+    }
+    double s = 0.0;
+    for (int64_t q = 0; q < len; q++) {
+      double t = (z[q] - m) * inv_eps;
+      if (t > -SK_CUT) s += exp(t);
+    }
+    double lse = m * inv_eps + log(s);
+    res += fabs(exp(own[i] * inv_eps + lse) - exp(logm[i] - own[i] * inv_rho));
+    own[i] = lam * eps * (logm[i] - lse);
+    *sum += own[i];
+  }
+  return res;
+}
+
+typedef struct sk_solver {
+  sk_support S;
+  int32_t nx, ny;
+  double *a, *b, *loga, *logb; /* normalized masses */
+  double *f, *g, *z;
+  double c0, rho;              /* absolute */
+  const sm_sinkhorn_opts *o;
+  sm_sinkhorn_stats *st;
+} sk_solver;
+
+static void solver_free(sk_solver *sv) {
+  support_free(&sv->S);
+  free(sv->a), free(sv->b), free(sv->loga), free(sv->logb);
+  free(sv->f), free(sv->g), free(sv->z);
+}
+
+/* Iterates at one eps until the residual is below tol or maxit iterations. */
+static int run_level(sk_solver *sv, double eps, int maxit, double tol, sm_error *err) {
+  const sk_support *S = &sv->S;
+  double lam = sv->rho > 0 ? sv->rho / (sv->rho + eps) : 1.0;
+  double inv_rho = sv->rho > 0 ? 1.0 / sv->rho : 0.0;
+  sm_sinkhorn_stats *st = sv->st;
+  st->levels++;
+  st->converged = 0;
+  for (int it = 0; it < maxit; it++) {
+    if (sv->o->cancel && sv->o->cancel(sv->o->cancel_ud))
+      return sm_error_set(err, SM_ECANCELED, "sinkhorn: canceled at eps=%g, iteration %d",
+                          eps, st->iterations);
+    double sum = 0.0;
+    double r = lse_update(sv->nx, S->rowptr, S->col, S->cost, sv->g, sv->f, sv->loga, eps,
+                          lam, inv_rho, sv->z, &sum);
+    lse_update(sv->ny, S->colptr, S->row, S->ccost, sv->f, sv->g, sv->logb, eps, lam,
+               inv_rho, sv->z, &sum);
+    st->iterations++;
+    st->residual = r;
+    if (!isfinite(sum))
+      return sm_error_set(err, SM_ENUMERIC, "sinkhorn: non-finite duals at eps=%g", eps);
+    if (r < tol) {
+      st->converged = 1;
+      break;
+    }
+  }
+  return 0;
+}
+
+/* Geometric eps schedule from eps_start to eps_end, duals carried over (warm start). */
+static int anneal(sk_solver *sv, sm_error *err) {
+  const sm_sinkhorn_opts *o = sv->o;
+  double eps = o->eps_start * sv->c0, eps_end = o->eps_end * sv->c0;
+  double mid_tol = o->tol > SK_MID_TOL ? o->tol : SK_MID_TOL;
+  for (;;) {
+    int last = eps <= eps_end * (1 + 1e-12);
+    if (last) eps = eps_end;
+    int rc = last ? run_level(sv, eps, o->max_iter * SK_LAST_LEVEL_MULT, o->tol, err)
+                  : run_level(sv, eps, o->max_iter, mid_tol, err);
+    if (rc) return rc;
+    if (last) break;
+    eps *= o->decay;
+  }
+  sv->st->eps = eps_end;
+  return 0;
+}
+
+/* ---------------------------------------------------------------- re-truncation */
+
+/* Keeps (i, j) with P_ij >= exp(-theta) min(a_i, b_j), i.e.
+ * C_ij <= max(A_i + g_j, f_i + B_j), A_i = f_i + eps (theta - log a_i), B_j likewise. */
+typedef struct sk_rt_ctx {
+  const double *f, *g, *A, *B;
+  double slack;
+  sk_pairs *pr;
+  int64_t limit;
+  int rc;
+} sk_rt_ctx;
+
+static void rt_block(void *vctx, int32_t i0, int32_t ni, int32_t j0, int32_t nj,
+                     const double *D) {
+  sk_rt_ctx *c = vctx;
+  for (int32_t r = 0; r < ni && !c->rc; r++) {
+    int32_t i = i0 + r;
+    const double *row = D + (size_t)r * SK_BLOCK_COLS;
+    for (int32_t q = 0; q < nj; q++) {
+      int32_t j = j0 + q;
+      double u = c->A[i] + c->g[j], v = c->f[i] + c->B[j];
+      if (row[q] > (u > v ? u : v) + c->slack) continue;
+      if (c->pr->len >= c->limit || pairs_reserve(c->pr, 1)) {
+        c->rc = c->pr->len >= c->limit ? SM_ELIMIT : SM_ENOMEM;
+        break;
+      }
+      pairs_put(c->pr, i, j, 1);
+    }
+  }
+}
+
+/* Entries of the new support S that the old support O lacks (both CSR, sorted rows). */
+static int64_t count_new(const sk_support *S, const sk_support *O) {
+  int64_t n = 0;
+  for (int32_t i = 0; i < S->nx; i++) {
+    int64_t q = O->rowptr[i];
+    for (int64_t p = S->rowptr[i]; p < S->rowptr[i + 1]; p++) {
+      while (q < O->rowptr[i + 1] && O->col[q] < S->col[p]) q++;
+      n += q == O->rowptr[i + 1] || O->col[q] != S->col[p];
+    }
+  }
+  return n;
+}
+
+/* One round: new support from the duals (plus the backbone), iterate on it. *added gets
+ * the number of entries the old support lacked. */
+static int retruncate(sk_solver *sv, const double *F, const double *G, int32_t d,
+                      int64_t *added, sm_error *err) {
+  double eps = sv->st->eps, th = sv->o->theta;
+  sk_pairs pr = {0};
+  sk_rt_ctx c = {sv->f, sv->g, malloc(sizeof(double) * (size_t)sv->nx),
+                 malloc(sizeof(double) * (size_t)sv->ny), 1e-9 * sv->c0, &pr,
+                 (int64_t)SK_RETRUNC_MAX_PER_POINT * ((int64_t)sv->nx + sv->ny), 0};
+  int rc = SM_ENOMEM;
+  if (c.A && c.B) {
+    for (int32_t i = 0; i < sv->nx; i++) ((double *)c.A)[i] = sv->f[i] + eps * (th - sv->loga[i]);
+    for (int32_t j = 0; j < sv->ny; j++) ((double *)c.B)[j] = sv->g[j] + eps * (th - sv->logb[j]);
+    rc = scan_blocks(F, sv->nx, G, sv->ny, d, rt_block, &c);
+    if (!rc) rc = c.rc;
+  }
+  if (!rc && !sv->o->no_backbone) rc = add_backbone(F, sv->nx, G, sv->ny, d, sv->a, sv->b, &pr);
+  free((void *)c.A), free((void *)c.B);
+  if (!rc) {
+    sk_support S;
+    rc = build_support(&pr, F, sv->nx, G, sv->ny, d, &S);
+    if (!rc) {
+      *added = count_new(&S, &sv->S);
+      support_free(&sv->S);
+      sv->S = S;
+      free(sv->z);
+      sv->z = malloc(sizeof(double) * (size_t)S.maxlen);
+      if (!sv->z) rc = SM_ENOMEM;
+    }
+  }
+  pairs_free(&pr);
+  if (rc == SM_ELIMIT)
+    return sm_error_set(err, rc, "sinkhorn: re-truncation at theta=%g keeps more than %lld "
+                        "entries; lower theta", th, (long long)c.limit);
+  if (rc) return sm_error_set(err, rc, "sinkhorn: no memory for the re-truncated support");
+  return run_level(sv, eps, sv->o->max_iter * SK_LAST_LEVEL_MULT, sv->o->tol, err);
+}
+
+/* ---------------------------------------------------------------- arguments */
+
+static int resolve_opts(const sm_sinkhorn_opts *in, sm_sinkhorn_opts *o, sm_error *err) {
+  sm_sinkhorn_opts def;
+  sm_sinkhorn_opts_default(&def);
+  *o = in ? *in : def;
+  if (o->k == 0) o->k = def.k;
+  if (o->eps_start == 0) o->eps_start = def.eps_start;
+  if (o->eps_end == 0) o->eps_end = def.eps_end;
+  if (o->decay == 0) o->decay = def.decay;
+  if (o->max_iter == 0) o->max_iter = def.max_iter;
+  if (o->tol == 0) o->tol = def.tol;
+  if (o->threads == 0) o->threads = def.threads;
+  if (o->k < 1) return sm_error_set(err, SM_EINVAL, "sinkhorn: k=%d must be >= 1", o->k);
+  if (!(o->eps_end > 0) || !(o->eps_start >= o->eps_end) || !isfinite(o->eps_start))
+    return sm_error_set(err, SM_EINVAL, "sinkhorn: need 0 < eps_end <= eps_start < inf, got "
+                        "eps_start=%g eps_end=%g", o->eps_start, o->eps_end);
+  if (!(o->decay > 0 && o->decay < 1))
+    return sm_error_set(err, SM_EINVAL, "sinkhorn: decay=%g must be in (0, 1)", o->decay);
+  if (o->max_iter < 1 || o->max_iter > 100000000 / SK_LAST_LEVEL_MULT)
+    return sm_error_set(err, SM_EINVAL, "sinkhorn: max_iter=%d out of range", o->max_iter);
+  if (!(o->tol > 0))
+    return sm_error_set(err, SM_EINVAL, "sinkhorn: tol=%g must be > 0", o->tol);
+  if (!(o->rho >= 0) || !isfinite(o->rho))
+    return sm_error_set(err, SM_EINVAL, "sinkhorn: rho=%g must be finite and >= 0", o->rho);
+  if (!(o->theta >= 0) || !isfinite(o->theta))
+    return sm_error_set(err, SM_EINVAL, "sinkhorn: theta=%g must be finite and >= 0", o->theta);
+  if (o->knn < SM_KNN_AUTO || o->knn > SM_KNN_BRUTE)
+    return sm_error_set(err, SM_EINVAL, "sinkhorn: unknown knn method %d", o->knn);
+  if (o->threads < 1)
+    return sm_error_set(err, SM_EINVAL, "sinkhorn: threads=%d must be >= 1", o->threads);
+  return 0;
+}
+
+static int check_points(const double *X, int32_t n, int32_t d, const char *name, sm_error *err) {
+  for (int64_t t = 0; t < (int64_t)n * d; t++)
+    if (!isfinite(X[t]))
+      return sm_error_set(err, SM_ENONFINITE, "sinkhorn: %s[%lld][%lld] is not finite", name,
+                          (long long)(t / d), (long long)(t % d));
+  return 0;
+}
+
+/* Normalized copies of the masses and their logs (m NULL = uniform). */
+static int make_masses(const double *m, int32_t n, const char *name, double **out,
+                       double **logout, sm_error *err) {
+  *out = malloc(sizeof(double) * (size_t)n);
+  *logout = malloc(sizeof(double) * (size_t)n);
+  if (!*out || !*logout) return sm_error_set(err, SM_ENOMEM, "sinkhorn: no memory for masses");
+  double sum = 0;
+  for (int32_t i = 0; i < n; i++) {
+    double v = m ? m[i] : 1.0 / n;
+    if (!(v > 0) || !isfinite(v))
+      return sm_error_set(err, SM_EINVAL, "sinkhorn: mass %s[%d]=%g must be finite and > 0",
+                          name, i, v);
+    sum += v;
+  }
+  if (fabs(sum - 1.0) > SK_MASS_TOL)
+    return sm_error_set(err, SM_EINVAL, "sinkhorn: masses %s sum to %.9g, not 1", name, sum);
+  for (int32_t i = 0; i < n; i++) {
+    (*out)[i] = (m ? m[i] : 1.0 / n) / sum;
+    (*logout)[i] = log((*out)[i]);
+  }
+  return 0;
+}
+
+static int check_args(const double *F, int32_t nx, const double *G, int32_t ny, int32_t d,
+                      sm_plan **plan, sm_error *err) {
+  if (!plan) return sm_error_set(err, SM_EINVAL, "sinkhorn: plan out-parameter is NULL");
+  if (!F || !G) return sm_error_set(err, SM_EINVAL, "sinkhorn: point set %s is NULL", F ? "G" : "F");
+  if (nx < 1 || ny < 1 || d < 1)
+    return sm_error_set(err, SM_EINVAL, "sinkhorn: need nx, ny, d >= 1, got %d, %d, %d", nx, ny, d);
+  int rc = check_points(F, nx, d, "F", err);
+  return rc ? rc : check_points(G, ny, d, "G", err);
+}
+
+/* ---------------------------------------------------------------- driver */
+
+static int build_initial(sk_solver *sv, const double *F, const double *G, int32_t d,
+                         sm_error *err) {
+  sk_pairs pr = {0};
+  double t0 = sm_now();
+  int rc = add_knn_pairs(F, sv->nx, G, sv->ny, d, sv->o, &pr, err);
+  double t1 = sm_now();
+  sv->st->t_knn = t1 - t0;
+  if (!rc && !sv->o->no_backbone && add_backbone(F, sv->nx, G, sv->ny, d, sv->a, sv->b, &pr))
+    rc = sm_error_set(err, SM_ENOMEM, "sinkhorn: no memory for the backbone");
+  if (!rc && build_support(&pr, F, sv->nx, G, sv->ny, d, &sv->S))
+    rc = sm_error_set(err, SM_ENOMEM, "sinkhorn: no memory for a support of %lld pairs",
+                      (long long)pr.len);
+  pairs_free(&pr);
+  if (rc) return rc;
+  sv->c0 = sv->S.c0 > 0 ? sv->S.c0 : 1.0; /* all K-NN costs 0: coincident points */
+  sv->rho = sv->o->rho * sv->c0;
+  sv->f = calloc((size_t)sv->nx, sizeof(double));
+  sv->g = calloc((size_t)sv->ny, sizeof(double));
+  sv->z = malloc(sizeof(double) * (size_t)sv->S.maxlen);
+  if (!sv->f || !sv->g || !sv->z) return sm_error_set(err, SM_ENOMEM, "sinkhorn: no memory for duals");
+  sv->st->t_setup = sm_now() - t1;
+  return 0;
+}
+
+/* Moves the support and the duals into a new plan and evaluates P on it. */
+static int make_plan(sk_solver *sv, sm_plan **out, sm_error *err) {
+  sm_plan *p = calloc(1, sizeof *p);
+  double *val = malloc(sizeof(double) * (size_t)(sv->S.nnz ? sv->S.nnz : 1));
+  if (!p || !val) {
+    free(p), free(val);
+    return sm_error_set(err, SM_ENOMEM, "sinkhorn: no memory for the plan");
+  }
+  double eps = sv->st->eps;
+  for (int32_t i = 0; i < sv->nx; i++)
+    for (int64_t q = sv->S.rowptr[i]; q < sv->S.rowptr[i + 1]; q++)
+      val[q] = exp((sv->f[i] + sv->g[sv->S.col[q]] - sv->S.cost[q]) / eps);
+  p->nx = sv->nx, p->ny = sv->ny, p->nnz = sv->S.nnz, p->eps = eps;
+  p->rowptr = sv->S.rowptr, p->col = sv->S.col, p->val = val, p->f = sv->f, p->g = sv->g;
+  sv->S.rowptr = NULL, sv->S.col = NULL, sv->f = NULL, sv->g = NULL;
+  *out = p;
+  return 0;
+}
+
+int sm_sinkhorn(const double *F, int32_t nx, const double *G, int32_t ny, int32_t d,
+                const double *a, const double *b, const sm_sinkhorn_opts *opts,
+                sm_plan **plan, sm_sinkhorn_stats *st, sm_error *err) {
+  double t0 = sm_now();
+  sm_sinkhorn_stats stl;
+  if (!st) st = &stl;
+  memset(st, 0, sizeof *st);
+  sm_error_clear(err);
+  if (plan) *plan = NULL;
+  sm_sinkhorn_opts o;
+  int rc = check_args(F, nx, G, ny, d, plan, err);
+  if (!rc) rc = resolve_opts(opts, &o, err);
+  if (rc) return rc;
+  sk_solver sv = {0};
+  sv.nx = nx, sv.ny = ny, sv.o = &o, sv.st = st;
+  rc = make_masses(a, nx, "a", &sv.a, &sv.loga, err);
+  if (!rc) rc = make_masses(b, ny, "b", &sv.b, &sv.logb, err);
+  if (!rc) rc = build_initial(&sv, F, G, d, err);
+  double t1 = sm_now();
+  if (!rc) rc = anneal(&sv, err);
+  for (int r = 0; !rc && o.theta > 0 && r < SK_RETRUNC_ROUNDS; r++) {
+    int64_t added = 0;
+    rc = retruncate(&sv, F, G, d, &added, err);
+    if (!added) break; /* the support holds every entry its own duals ask for */
+  }
+  if (!rc) {
+    st->t_iter = sm_now() - t1;
+    st->c0 = sv.c0;
+    st->nnz = sv.S.nnz;
+    st->nnz_knn = sv.S.nnz_knn;
+    rc = make_plan(&sv, plan, err);
+  }
+  if (!rc) rc = sm_plan_marginal_error(*plan, sv.a, sv.b, &st->err_a, &st->err_b);
+  if (rc == SM_ENOMEM && err && err->code == SM_OK)
+    sm_error_set(err, rc, "sinkhorn: no memory for marginals");
+  solver_free(&sv);
+  if (rc && plan && *plan) sm_plan_destroy(*plan), *plan = NULL;
+  st->t_total = sm_now() - t0;
+  return rc;
+}
+
+/* ---------------------------------------------------------------- plan helpers */
+
+void sm_plan_destroy(sm_plan *p) {
+  if (!p) return;
+  free(p->rowptr), free(p->col), free(p->val), free(p->f), free(p->g);
+  free(p);
+}
+
+void sm_plan_row_argmax(const sm_plan *p, int32_t *T) {
+  for (int32_t i = 0; i < p->nx; i++) {
+    int32_t best = -1;
+    double bv = -INFINITY;
+    for (int64_t q = p->rowptr[i]; q < p->rowptr[i + 1]; q++)
+      if (p->val[q] > bv) bv = p->val[q], best = p->col[q];
+    T[i] = best;
+  }
+}
+
+int sm_plan_col_argmax(const sm_plan *p, int32_t *T_yx) {
+  double *bv = malloc(sizeof(double) * (size_t)p->ny);
+  if (!bv) return SM_ENOMEM;
+  for (int32_t j = 0; j < p->ny; j++) T_yx[j] = -1, bv[j] = -INFINITY;
+  for (int32_t i = 0; i < p->nx; i++)
+    for (int64_t q = p->rowptr[i]; q < p->rowptr[i + 1]; q++)
+      if (p->val[q] > bv[p->col[q]]) bv[p->col[q]] = p->val[q], T_yx[p->col[q]] = i;
+  free(bv);
+  return 0;
+}
+
+typedef struct sk_entry {
+  double s;
+  int32_t i, j;
+} sk_entry;
+
+static int entry_cmp(const void *pa, const void *pb) {
+  const sk_entry *x = pa, *y = pb;
+  if (x->s != y->s) return x->s > y->s ? -1 : 1;
+  if (x->i != y->i) return x->i < y->i ? -1 : 1;
+  return (x->j > y->j) - (x->j < y->j);
+}
+
+/* Rows still free after the greedy pass: best free column of the row, else the argmax. */
+static void finish_rows(const sm_plan *p, int32_t *T, const uint8_t *used) {
+  for (int32_t i = 0; i < p->nx; i++) {
+    if (T[i] >= 0) continue;
+    int32_t bf = -1, ba = -1;
+    double vf = -INFINITY, va = -INFINITY;
+    for (int64_t q = p->rowptr[i]; q < p->rowptr[i + 1]; q++) {
+      if (p->val[q] > va) va = p->val[q], ba = p->col[q];
+      if (!used[p->col[q]] && p->val[q] > vf) vf = p->val[q], bf = p->col[q];
+    }
+    T[i] = bf >= 0 ? bf : ba;
+  }
+}
+
+int sm_plan_extract_bijective(const sm_plan *p, int32_t *T, sm_error *err) {
+  double *rs = malloc(sizeof(double) * (size_t)(p->nx ? p->nx : 1));
+  uint8_t *used = calloc((size_t)p->ny, 1);
+  sk_entry *e = malloc(sizeof(sk_entry) * (size_t)(p->nnz ? p->nnz : 1));
+  if (!rs || !used || !e) {
+    free(rs), free(used), free(e);
+    return sm_error_set(err, SM_ENOMEM, "plan: no memory to sort %lld entries", (long long)p->nnz);
+  }
+  int64_t n = 0;
+  for (int32_t i = 0; i < p->nx; i++) {
+    rs[i] = 0;
+    for (int64_t q = p->rowptr[i]; q < p->rowptr[i + 1]; q++) rs[i] += p->val[q];
+    for (int64_t q = p->rowptr[i]; q < p->rowptr[i + 1]; q++) {
+      double s = rs[i] > 0 ? p->val[q] / rs[i] : 0.0;
+      /* entries this unlikely never win a free pair that a later pass would miss */
+      if (s >= SK_BIJ_MIN_SCORE) e[n++] = (sk_entry){s, i, p->col[q]};
+    }
+    T[i] = -1;
+  }
+  qsort(e, (size_t)n, sizeof *e, entry_cmp);
+  for (int64_t t = 0; t < n; t++)
+    if (T[e[t].i] < 0 && !used[e[t].j]) T[e[t].i] = e[t].j, used[e[t].j] = 1;
+  finish_rows(p, T, used);
+  free(rs), free(used), free(e);
+  return 0;
+}
+
+double sm_plan_map_distinct(const int32_t *T, int32_t nx, int32_t ny) {
+  uint8_t *hit = calloc((size_t)(ny > 0 ? ny : 1), 1);
+  if (!hit || nx < 1 || ny < 1) {
+    free(hit);
+    return NAN;
+  }
+  int32_t distinct = 0;
+  for (int32_t i = 0; i < nx; i++)
+    if (T[i] >= 0 && T[i] < ny && !hit[T[i]]) hit[T[i]] = 1, distinct++;
+  free(hit);
+  return (double)distinct / (double)(nx < ny ? nx : ny);
+}
+
+int sm_plan_marginal_error(const sm_plan *p, const double *a, const double *b,
+                           double *err_a, double *err_b) {
+  double *cs = calloc((size_t)p->ny, sizeof(double));
+  if (!cs) return SM_ENOMEM;
+  double ea = 0, eb = 0;
+  for (int32_t i = 0; i < p->nx; i++) {
+    double r = 0;
+    for (int64_t q = p->rowptr[i]; q < p->rowptr[i + 1]; q++) r += p->val[q], cs[p->col[q]] += p->val[q];
+    ea += fabs(r - (a ? a[i] : 1.0 / p->nx));
+  }
+  for (int32_t j = 0; j < p->ny; j++) eb += fabs(cs[j] - (b ? b[j] : 1.0 / p->ny));
+  free(cs);
+  if (err_a) *err_a = ea;
+  if (err_b) *err_b = eb;
+  return 0;
+}
