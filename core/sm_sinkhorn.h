@@ -53,8 +53,8 @@
 #include <stdint.h>
 
 #include "sm_error.h"
+#include "sm_knn.h"
 
-enum sm_knn_method { SM_KNN_AUTO = 0, SM_KNN_KDTREE = 1, SM_KNN_BRUTE = 2 };
 
 /* Every field's 0 means "default", so `sm_sinkhorn_opts o = {0};` is a valid start. */
 typedef struct sm_sinkhorn_opts {
@@ -71,7 +71,7 @@ typedef struct sm_sinkhorn_opts {
   double theta;     /* > 0: after the last level, re-truncate the support from the duals
                        (keep (i, j) with P_ij >= exp(-theta) * min(a_i, b_j), searched
                        over all pairs) and iterate again; 0: off */
-  int knn;          /* enum sm_knn_method (default AUTO: kd-tree for d <= 16) */
+  int knn;          /* enum sm_knn_strategy (default AUTO: kd-tree for d <= 16) */
   int threads;      /* FLANN search threads (default 1) */
   int (*cancel)(void *ud); /* nonzero = stop (SM_ECANCELED); may be NULL */
   void *cancel_ud;
