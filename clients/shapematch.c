@@ -5,6 +5,7 @@
  *   info   MESH | BASIS.smb                                  describe a mesh or basis file
  *   encode MESH -o OUT.drc [--qbits Q]                        Draco-encode (order-preserving)
  *   synth  sphere|torus|blob [...] -o OUT.off                 write a mesh of our own
+ *   match  A B [options] [-o MAP.txt] [--json]                point map A -> B (local)
  * Exit status: 0 success, 1 failure (message on stderr), 2 usage error.
  */
 #include <stdio.h>
@@ -17,6 +18,7 @@
 #include "sm_meshio.h"
 #include "sm_shell.h"
 #include "sm_synth.h"
+#include "sm_match.h"
 
 #define SM_VERSION "0.1.0"
 
@@ -34,6 +36,12 @@ static int usage(FILE *f) {
           "  synth sphere|torus|blob [--subdiv S] [--seed N] [--amp A] [--stretch X,Y,Z] -o OUT.off\n"
           "        write an analytic mesh (blobs of one subdiv share connectivity and vertex\n"
           "        order, so any two correspond by identity)\n"
+          "  match A B [--basis elastic|lb|hybrid] [--init sinkhorn|nn] [-k K1] [--k0 K0]\n"
+          "        [--step S] [--eta E] [--landmarks FILE] [--init-map FILE] [-o MAP.txt]\n"
+          "        [--yx MAP_BA.txt] [--json]\n"
+          "        dense point map from A to B: line i of MAP.txt = vertex of B (0-based, B's\n"
+          "        numbering) matched to vertex i of A; -1 for vertices cleaning dropped.\n"
+          "        Landmarks: lines 'a b' of 0-based vertex pairs.\n"
           "  version\n",
           SM_SHELL_DEFAULT_ETA);
   return 2;
@@ -182,6 +190,219 @@ static int cmd_encode(int argc, char **argv) {
   return 0;
 }
 
+/* Input index -> cleaned index (-1 if dropped). */
+static int32_t *inverse_index(const sm_mesh *m) {
+  int32_t *inv = malloc((size_t)(m->n_input ? m->n_input : 1) * sizeof *inv);
+  if (!inv) return NULL;
+  for (int32_t i = 0; i < m->n_input; i++) inv[i] = -1;
+  for (int32_t v = 0; v < m->nv; v++) inv[m->to_input ? m->to_input[v] : v] = v;
+  return inv;
+}
+
+/* Reads lines of `ncol` integers; returns the count of rows, -1 on error (message printed). */
+static int read_index_rows(const char *path, int ncol, int32_t **out) {
+  FILE *f = fopen(path, "r");
+  if (!f) {
+    perror(path);
+    return -1;
+  }
+  int cap = 64, n = 0;
+  int32_t *v = malloc((size_t)cap * ncol * sizeof *v);
+  double x[2];
+  for (;;) {
+    int got = ncol == 2 ? fscanf(f, "%lf %lf", &x[0], &x[1]) : fscanf(f, "%lf", &x[0]);
+    if (got != ncol) break;
+    if (n == cap) {
+      int32_t *w = realloc(v, (size_t)(cap *= 2) * ncol * sizeof *v);
+      if (!w) break;
+      v = w;
+    }
+    for (int c = 0; c < ncol; c++) v[(size_t)n * ncol + c] = (int32_t)x[c];
+    n++;
+  }
+  int bad = !feof(f);
+  fclose(f);
+  if (bad) {
+    fprintf(stderr, "shapematch: %s: line %d is not %d integer(s)\n", path, n + 1, ncol);
+    free(v);
+    return -1;
+  }
+  *out = v;
+  return n;
+}
+
+static int write_map(const char *path, const int32_t *T, int32_t n) {
+  FILE *f = strcmp(path, "-") ? fopen(path, "w") : stdout;
+  if (!f) {
+    perror(path);
+    return 1;
+  }
+  for (int32_t i = 0; i < n; i++) fprintf(f, "%d\n", T[i]);
+  if (f != stdout && fclose(f)) {
+    perror(path);
+    return 1;
+  }
+  return 0;
+}
+
+typedef struct match_args {
+  const char *a, *b, *out, *out_yx, *landmarks, *init_map;
+  int json;
+  sm_shape_opts so;
+  sm_match_opts mo;
+} match_args;
+
+static int parse_match_args(int argc, char **argv, match_args *m) {
+  memset(m, 0, sizeof *m);
+  sm_shape_opts_default(&m->so);
+  sm_match_opts_default(&m->mo);
+  for (int i = 0; i < argc; i++) {
+    const char *a = argv[i], *v = i + 1 < argc ? argv[i + 1] : NULL;
+    if (!strcmp(a, "--json")) { m->json = 1; continue; }
+    if (a[0] != '-') {
+      if (!m->a) m->a = a;
+      else if (!m->b) m->b = a;
+      else return -1;
+      continue;
+    }
+    if (!v) return -1;
+    i++;
+    if (!strcmp(a, "--basis")) {
+      m->mo.basis = !strcmp(v, "lb") ? SM_MATCH_LB : !strcmp(v, "elastic") ? SM_MATCH_ELASTIC
+                  : !strcmp(v, "hybrid") ? SM_MATCH_HYBRID : 0;
+      if (!m->mo.basis) return -1;
+    } else if (!strcmp(a, "--init")) {
+      m->mo.init = !strcmp(v, "nn") ? SM_INIT_NN : !strcmp(v, "sinkhorn") ? SM_INIT_SINKHORN : 0;
+      if (!m->mo.init) return -1;
+    } else if (!strcmp(a, "-k")) m->mo.k1 = atoi(v);
+    else if (!strcmp(a, "--k0")) m->mo.k0 = atoi(v);
+    else if (!strcmp(a, "--step")) m->mo.step = atoi(v);
+    else if (!strcmp(a, "--eta")) m->so.eta = atof(v);
+    else if (!strcmp(a, "--landmarks")) m->landmarks = v;
+    else if (!strcmp(a, "--init-map")) m->init_map = v;
+    else if (!strcmp(a, "-o")) m->out = v;
+    else if (!strcmp(a, "--yx")) m->out_yx = v;
+    else return -1;
+  }
+  if (!m->a || !m->b) return -1;
+  if (m->mo.basis == SM_MATCH_LB) m->so.k_elastic = 0;
+  if (m->mo.k1 > m->so.k_lb) m->so.k_lb = m->mo.k1;
+  if (m->so.k_elastic && m->mo.k1 > m->so.k_elastic) m->so.k_elastic = m->mo.k1;
+  return 0;
+}
+
+static int prepare_shape(const char *path, const sm_shape_opts *so, sm_shape **out) {
+  sm_error err;
+  sm_mesh *raw;
+  if (sm_mesh_read_file(path, NULL, &raw, &err)) return fail(path, &err);
+  int rc = sm_shape_prepare(raw, so, out, &err);
+  sm_mesh_destroy(raw);
+  return rc ? fail(path, &err) : 0;
+}
+
+/* Landmarks and initial maps come in the caller's numbering: translate to cleaned indices. */
+static int translate_inputs(const match_args *m, const sm_shape *x, const sm_shape *y,
+                            int32_t **lm, int32_t **init) {
+  int32_t *ix = inverse_index(x->mesh), *iy = inverse_index(y->mesh), *rows = NULL;
+  int rc = 0;
+  if (m->landmarks) {
+    int n = read_index_rows(m->landmarks, 2, &rows);
+    rc = n < 0;
+    for (int i = 0; !rc && i < n; i++) {
+      int32_t a = rows[2 * i], b = rows[2 * i + 1];
+      if (a < 0 || a >= x->mesh->n_input || b < 0 || b >= y->mesh->n_input || ix[a] < 0 || iy[b] < 0) {
+        fprintf(stderr, "shapematch: landmark %d (%d, %d) is not a vertex of both meshes\n", i + 1, a, b);
+        rc = 1;
+      } else {
+        rows[2 * i] = ix[a];
+        rows[2 * i + 1] = iy[b];
+      }
+    }
+    *lm = rows;
+    ((match_args *)m)->mo.landmarks = rows;
+    ((match_args *)m)->mo.nlandmarks = rc ? 0 : n;
+  }
+  if (!rc && m->init_map) {
+    int32_t *t = NULL;
+    int n = read_index_rows(m->init_map, 1, &t);
+    rc = n != x->mesh->n_input;
+    if (rc && n >= 0) fprintf(stderr, "shapematch: %s has %d lines, A has %d vertices\n", m->init_map, n, x->mesh->n_input);
+    *init = malloc((size_t)x->mesh->nv * sizeof **init);
+    for (int32_t v = 0; !rc && v < x->mesh->nv; v++) {
+      int32_t b = t[x->mesh->to_input ? x->mesh->to_input[v] : v];
+      if (b < 0 || b >= y->mesh->n_input || iy[b] < 0) {
+        fprintf(stderr, "shapematch: %s: entry %d is not a vertex of B\n", m->init_map, v);
+        rc = 1;
+      } else {
+        (*init)[v] = iy[b];
+      }
+    }
+    free(t);
+    ((match_args *)m)->mo.init_map = *init;
+  }
+  free(ix);
+  free(iy);
+  return rc;
+}
+
+static void print_match_json(const match_args *m, const sm_shape *x, const sm_shape *y,
+                             const sm_match_result *r, double t_total) {
+  printf("{\"source\":\"%s\",\"target\":\"%s\",\"n_source\":%d,\"n_target\":%d,"
+         "\"basis\":\"%s\",\"init\":\"%s\",\"k0\":%d,\"k1\":%d,\"step\":%d,"
+         "\"orientation\":%.6f,\"flipped\":%d,\"init_distinct\":%.6f,"
+         "\"time\":{\"basis\":%.4f,\"init\":%.4f,\"refine\":%.4f,\"total\":%.4f},"
+         "\"map\":\"%s\"}\n",
+         m->a, m->b, x->mesh->n_input, y->mesh->n_input,
+         m->mo.basis == SM_MATCH_LB ? "lb" : m->mo.basis == SM_MATCH_ELASTIC ? "elastic" : "hybrid",
+         m->mo.init == SM_INIT_NN ? "nn" : "sinkhorn", m->mo.k0, m->mo.k1, m->mo.step,
+         r->orientation, r->flipped, r->init_distinct,
+         x->t_clean + x->t_lb + x->t_elastic + x->t_desc + y->t_clean + y->t_lb + y->t_elastic + y->t_desc,
+         r->t_init, r->t_refine, t_total, m->out ? m->out : "");
+}
+
+static int cmd_match(int argc, char **argv) {
+  match_args m;
+  if (parse_match_args(argc, argv, &m)) return usage(stderr);
+  double t0 = sm_now();
+  sm_shape *x = NULL, *y = NULL;
+  int32_t *lm = NULL, *init = NULL, *map = NULL;
+  sm_match_result r;
+  memset(&r, 0, sizeof r);
+  int rc = prepare_shape(m.a, &m.so, &x) || prepare_shape(m.b, &m.so, &y);
+  if (!rc) rc = translate_inputs(&m, x, y, &lm, &init);
+  if (!rc) {
+    sm_error err;
+    m.mo.want_yx = m.out_yx != NULL;
+    if (sm_match(x, y, &m.mo, &r, &err)) rc = fail("match", &err);
+  }
+  if (!rc) {
+    map = malloc((size_t)x->mesh->n_input * sizeof *map);
+    sm_match_to_input(x, y, r.T, map);
+    if (m.out) rc = write_map(m.out, map, x->mesh->n_input);
+    if (!rc && m.out_yx) {
+      int32_t *back = malloc((size_t)y->mesh->n_input * sizeof *back);
+      sm_match_to_input(y, x, r.T_yx, back);
+      rc = write_map(m.out_yx, back, y->mesh->n_input);
+      free(back);
+    }
+    double t = sm_now() - t0;
+    if (!rc && m.json) print_match_json(&m, x, y, &r, t);
+    else if (!rc)
+      fprintf(stderr, "matched %d -> %d vertices in %.2f s (bases %.2f, init %.2f, refine %.2f); "
+              "orientation %.3f%s%s%s\n", x->mesh->n_input, y->mesh->n_input, t,
+              x->t_lb + x->t_elastic + y->t_lb + y->t_elastic, r.t_init, r.t_refine,
+              r.orientation, r.flipped ? " (mirror fixed)" : "", m.out ? "; map in " : "",
+              m.out ? m.out : "");
+  }
+  free(map);
+  free(lm);
+  free(init);
+  sm_match_result_free(&r);
+  sm_shape_destroy(x);
+  sm_shape_destroy(y);
+  return rc ? 1 : 0;
+}
+
 static int write_off(const sm_mesh *m, const char *path) {
   FILE *f = fopen(path, "w");
   if (!f) {
@@ -238,6 +459,7 @@ int main(int argc, char **argv) {
   if (!strcmp(cmd, "info")) return cmd_info(argc - 2, argv + 2);
   if (!strcmp(cmd, "encode")) return cmd_encode(argc - 2, argv + 2);
   if (!strcmp(cmd, "synth")) return cmd_synth(argc - 2, argv + 2);
+  if (!strcmp(cmd, "match")) return cmd_match(argc - 2, argv + 2);
   if (!strcmp(cmd, "version") || !strcmp(cmd, "--version")) {
     printf("shapematch %s\n", SM_VERSION);
     return 0;

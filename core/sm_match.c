@@ -1,0 +1,381 @@
+#include "sm_match.h"
+
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "sm_coarse.h"
+#include "sm_desc.h"
+#include "sm_eigs.h"
+#include "sm_fmap.h"
+#include "sm_shell.h"
+#include "sm_sinkhorn.h"
+
+void sm_shape_opts_default(sm_shape_opts *o) {
+  memset(o, 0, sizeof *o);
+  o->k_lb = 100;
+  o->k_elastic = 100;
+  o->eta = SM_SHELL_DEFAULT_ETA;
+  o->n_desc = 100;
+}
+
+void sm_shape_destroy(sm_shape *s) {
+  if (!s) return;
+  sm_mesh_destroy(s->mesh);
+  sm_basis_destroy(s->lb);
+  sm_basis_destroy(s->elastic);
+  free(s->desc);
+  free(s);
+}
+
+static int shape_descriptors(sm_shape *s, int n_desc, sm_error *err) {
+  s->n_desc = n_desc;
+  s->desc = malloc((size_t)s->mesh->nv * n_desc * sizeof *s->desc);
+  if (!s->desc) return sm_error_set(err, SM_ENOMEM, "descriptors: out of memory");
+  double t0 = sm_now();
+  int rc = sm_desc_wks(s->lb, s->lb->k, n_desc, 0, s->desc, err);
+  s->t_desc = sm_now() - t0;
+  return rc;
+}
+
+int sm_shape_assemble(sm_mesh *mesh, sm_basis *lb, sm_basis *elastic, int n_desc,
+                      sm_shape **out, sm_error *err) {
+  *out = NULL;
+  sm_shape *s = calloc(1, sizeof *s);
+  if (!s) {
+    sm_mesh_destroy(mesh);
+    sm_basis_destroy(lb);
+    sm_basis_destroy(elastic);
+    return sm_error_set(err, SM_ENOMEM, "shape: out of memory");
+  }
+  s->mesh = mesh;
+  s->lb = lb;
+  s->elastic = elastic;
+  if (!lb || lb->n != mesh->nv || (elastic && elastic->n != mesh->nv)) {
+    sm_shape_destroy(s);
+    return sm_error_set(err, SM_EINVAL, "shape: bases do not belong to this mesh");
+  }
+  int rc = shape_descriptors(s, n_desc, err);
+  if (rc) {
+    sm_shape_destroy(s);
+    return rc;
+  }
+  *out = s;
+  return SM_OK;
+}
+
+static int compute_basis(const sm_mesh *m, int kind, int k, const sm_shape_opts *o,
+                         sm_basis **b, double *t, sm_error *err) {
+  sm_basis_opts bo;
+  sm_basis_opts_default(&bo, kind, k);
+  if (kind == SM_BASIS_ELASTIC) bo.eta = o->eta;
+  bo.cancel = o->cancel;
+  bo.cancel_ud = o->cancel_ud;
+  double t0 = sm_now();
+  int rc = sm_basis_compute(m, &bo, b, err);
+  *t = sm_now() - t0;
+  return rc;
+}
+
+int sm_shape_prepare(const sm_mesh *input, const sm_shape_opts *o, sm_shape **out,
+                     sm_error *err) {
+  *out = NULL;
+  double t0 = sm_now();
+  sm_mesh *m = NULL;
+  sm_basis *lb = NULL, *el = NULL;
+  double t_lb = 0, t_el = 0;
+  int rc = sm_mesh_clean(input, NULL, &m, NULL, err);
+  if (!rc) rc = sm_mesh_normalize(m, err);
+  double t_clean = sm_now() - t0;
+  if (!rc && (o->k_lb < 2 || o->k_lb >= m->nv))
+    rc = sm_error_set(err, SM_EINVAL, "k_lb = %d must be in [2, %d) for this mesh", o->k_lb,
+                      m->nv);
+  if (!rc) rc = compute_basis(m, SM_BASIS_LB, o->k_lb, o, &lb, &t_lb, err);
+  if (!rc && o->k_elastic > 0)
+    rc = compute_basis(m, SM_BASIS_ELASTIC, o->k_elastic, o, &el, &t_el, err);
+  if (rc) {
+    sm_mesh_destroy(m);
+    sm_basis_destroy(lb);
+    return rc;
+  }
+  rc = sm_shape_assemble(m, lb, el, o->n_desc, out, err);
+  if (!rc) {
+    (*out)->t_clean = t_clean;
+    (*out)->t_lb = t_lb;
+    (*out)->t_elastic = t_el;
+  }
+  return rc;
+}
+
+void sm_match_opts_default(sm_match_opts *o) {
+  memset(o, 0, sizeof *o);
+  o->basis = SM_MATCH_ELASTIC;
+  o->init = SM_INIT_SINKHORN;
+  o->k0 = 20;
+  o->k1 = 100;
+  o->step = 5;
+  o->coarse_k = 20;
+  o->sinkhorn_k = 16;
+  o->samples = 2000;
+  o->orientation_fix = 1;
+}
+
+void sm_match_result_free(sm_match_result *r) {
+  free(r->T);
+  free(r->T_yx);
+  free(r->C);
+  memset(r, 0, sizeof *r);
+}
+
+static int check_opts(const sm_shape *x, const sm_shape *y, const sm_match_opts *o,
+                      sm_error *err) {
+  if (o->basis < SM_MATCH_LB || o->basis > SM_MATCH_HYBRID)
+    return sm_error_set(err, SM_EINVAL, "unknown basis %d", o->basis);
+  if (o->init != SM_INIT_NN && o->init != SM_INIT_SINKHORN)
+    return sm_error_set(err, SM_EINVAL, "unknown init %d", o->init);
+  int need_el = o->basis != SM_MATCH_LB, need_lb = o->basis != SM_MATCH_ELASTIC;
+  if (need_el && (!x->elastic || !y->elastic))
+    return sm_error_set(err, SM_EINVAL, "basis needs elastic bases on both shapes");
+  int kmax = 1 << 30;
+  if (need_el) kmax = x->elastic->k < y->elastic->k ? x->elastic->k : y->elastic->k;
+  if (need_lb) kmax = kmax < x->lb->k ? kmax : x->lb->k;
+  if (need_lb) kmax = kmax < y->lb->k ? kmax : y->lb->k;
+  if (o->k0 < 1 || o->k1 < o->k0 || o->k1 > kmax || o->step < 1)
+    return sm_error_set(err, SM_EINVAL, "schedule k0 = %d, k1 = %d, step = %d invalid "
+                        "(bases have %d functions)", o->k0, o->k1, o->step, kmax);
+  if (o->coarse_k < 2 || o->coarse_k > x->lb->k || o->coarse_k > y->lb->k)
+    return sm_error_set(err, SM_EINVAL, "coarse_k = %d invalid", o->coarse_k);
+  for (int i = 0; i < o->nlandmarks; i++)
+    if (o->landmarks[2 * i] < 0 || o->landmarks[2 * i] >= x->mesh->nv ||
+        o->landmarks[2 * i + 1] < 0 || o->landmarks[2 * i + 1] >= y->mesh->nv)
+      return sm_error_set(err, SM_ERANGE, "landmark %d (%d, %d) out of range", i,
+                          o->landmarks[2 * i], o->landmarks[2 * i + 1]);
+  return SM_OK;
+}
+
+/* Landmark descriptors: the heat kernel h_t(., l) = sum_i e^{-t lambda_i} phi_i(l) phi_i
+ * at three times, one set per landmark, appended to the WKS columns. Same construction on
+ * both shapes, so the pair (x_l, y_l) gets matching functions. */
+#define SM_LANDMARK_TIMES 3
+static int with_landmarks(const sm_shape *s, const int32_t *lm, int nl, int stride, int side,
+                          double **out, int *nd) {
+  int32_t n = s->mesh->nv;
+  int k = s->lb->k, extra = nl * SM_LANDMARK_TIMES;
+  *nd = s->n_desc + extra;
+  double *D = malloc((size_t)n * *nd * sizeof *D);
+  if (!D) return SM_ENOMEM;
+  memcpy(D, s->desc, (size_t)n * s->n_desc * sizeof *D);
+  const double *ev = s->lb->evals;
+  for (int l = 0; l < nl; l++) {
+    int32_t v0 = lm[stride * l + side];
+    for (int q = 0; q < SM_LANDMARK_TIMES; q++) {
+      double t = 4 * log(10.0) / ev[k - 1] * pow(20.0, q), norm = 0;
+      double *d = D + (size_t)(s->n_desc + l * SM_LANDMARK_TIMES + q) * n;
+      memset(d, 0, (size_t)n * sizeof *d);
+      for (int i = 0; i < k; i++) {
+        const double *phi = s->lb->phi + (size_t)i * n;
+        double c = exp(-t * ev[i]) * phi[v0];
+        for (int32_t v = 0; v < n; v++) d[v] += c * phi[v];
+      }
+      for (int32_t v = 0; v < n; v++) norm += s->lb->mass[v] * d[v] * d[v];
+      norm = norm > 0 ? 1 / sqrt(norm) : 0;
+      for (int32_t v = 0; v < n; v++) d[v] *= norm;
+    }
+  }
+  *out = D;
+  return SM_OK;
+}
+
+static int coarse_map(const sm_shape *x, const sm_shape *y, const sm_match_opts *o, int sign,
+                      double *C, sm_error *err) {
+  sm_coarse_opts co;
+  sm_coarse_opts_default(&co);
+  co.k0 = o->coarse_k;
+  co.orient_sign = sign;
+  const double *dx = x->desc, *dy = y->desc;
+  double *lx = NULL, *ly = NULL;
+  int nd = x->n_desc, ndy = y->n_desc;
+  if (nd != ndy) return sm_error_set(err, SM_EINVAL, "descriptor counts differ (%d, %d)", nd, ndy);
+  if (o->nlandmarks > 0) {
+    if (with_landmarks(x, o->landmarks, o->nlandmarks, 2, 0, &lx, &nd) ||
+        with_landmarks(y, o->landmarks, o->nlandmarks, 2, 1, &ly, &ndy)) {
+      free(lx);
+      free(ly);
+      return sm_error_set(err, SM_ENOMEM, "landmark descriptors: out of memory");
+    }
+    dx = lx;
+    dy = ly;
+  }
+  sm_coarse_side sx = {x->mesh, x->lb, dx}, sy = {y->mesh, y->lb, dy};
+  int rc = sm_coarse_fmap(&sx, &sy, nd, &co, C, err);
+  free(lx);
+  free(ly);
+  return rc;
+}
+
+/* Initial point map from the coarse C: nearest neighbour between the aligned embeddings,
+ * or the sparse Sinkhorn plan between them (masses = vertex areas), extracted greedily so
+ * that it is as bijective as the plan allows. */
+static int initial_map(const sm_shape *x, const sm_shape *y, const sm_match_opts *o,
+                       const double *C, int32_t *T, sm_error *err) {
+  int k = o->coarse_k;
+  if (o->init == SM_INIT_NN) {
+    sm_fmap_pair p = {x->lb, y->lb, k, k, 1.0};
+    const double *Cs[1] = {C};
+    return sm_fmap_to_p2p(&p, 1, Cs, T, NULL, NULL, err);
+  }
+  int32_t nx = x->mesh->nv, ny = y->mesh->nv;
+  double *Ex = malloc((size_t)nx * k * sizeof *Ex), *Ey = malloc((size_t)ny * k * sizeof *Ey);
+  sm_plan *plan = NULL;
+  int rc = (!Ex || !Ey) ? sm_error_set(err, SM_ENOMEM, "init: out of memory") : SM_OK;
+  if (!rc) rc = sm_fmap_embed_x(x->lb, k, Ex, k, err);
+  if (!rc) rc = sm_fmap_embed_y(x->lb, y->lb, k, C, Ey, k, err);
+  if (!rc) {
+    sm_sinkhorn_opts so;
+    sm_sinkhorn_opts_default(&so);
+    so.k = o->sinkhorn_k;
+    so.cancel = o->cancel;
+    so.cancel_ud = o->cancel_ud;
+    rc = sm_sinkhorn(Ex, nx, Ey, ny, k, x->lb->mass, y->lb->mass, &so, &plan, NULL, err);
+  }
+  if (!rc) rc = sm_plan_extract_bijective(plan, T, err);
+  sm_plan_destroy(plan);
+  free(Ex);
+  free(Ey);
+  return rc;
+}
+
+static int refine(const sm_shape *x, const sm_shape *y, const sm_match_opts *o, int32_t *T,
+                  double *C, int32_t *T_yx, sm_error *err) {
+  sm_fmap_pair pairs[2];
+  int np = 1;
+  const sm_basis *bx = o->basis == SM_MATCH_LB ? x->lb : x->elastic;
+  const sm_basis *by = o->basis == SM_MATCH_LB ? y->lb : y->elastic;
+  pairs[0] = (sm_fmap_pair){bx, by, o->k1, o->k0, 1.0};
+  if (o->basis == SM_MATCH_HYBRID) pairs[np++] = (sm_fmap_pair){x->lb, y->lb, o->k1, o->k0, 1.0};
+  sm_zoomout_opts zo;
+  sm_zoomout_opts_default(&zo);
+  zo.step = o->step;
+  zo.nsample_x = o->samples;
+  zo.pos_x = x->mesh->V;
+  zo.pos_y = y->mesh->V;
+  zo.cancel = o->cancel;
+  zo.cancel_ud = o->cancel_ud;
+  double *Cs[2] = {C, NULL};
+  return sm_zoomout(pairs, np, &zo, T, T, Cs, T_yx, NULL, err);
+}
+
+/* One full attempt: coarse map with the given orientation sign, initial map, refinement. */
+static int attempt(const sm_shape *x, const sm_shape *y, const sm_match_opts *o, int sign,
+                   sm_match_result *r, sm_error *err) {
+  int k = o->coarse_k;
+  double t0 = sm_now();
+  int rc = SM_OK;
+  if (o->init_map) {
+    memcpy(r->T, o->init_map, (size_t)r->nx * sizeof *r->T);
+  } else {
+    double *C0 = malloc((size_t)k * k * sizeof *C0);
+    if (!C0) return sm_error_set(err, SM_ENOMEM, "match: out of memory");
+    rc = coarse_map(x, y, o, sign, C0, err);
+    if (!rc) rc = initial_map(x, y, o, C0, r->T, err);
+    free(C0);
+  }
+  if (!rc) r->init_distinct = sm_plan_map_distinct(r->T, r->nx, r->ny);
+  double t1 = sm_now();
+  if (!rc) rc = refine(x, y, o, r->T, r->C, r->T_yx, err);
+  r->t_init += t1 - t0;
+  r->t_refine += sm_now() - t1;
+  if (!rc) r->orientation = sm_map_orientation_score(x->mesh, y->mesh, r->T);
+  return rc;
+}
+
+static int result_alloc(sm_match_result *r, const sm_shape *x, const sm_shape *y,
+                        const sm_match_opts *o) {
+  memset(r, 0, sizeof *r);
+  r->nx = x->mesh->nv;
+  r->ny = y->mesh->nv;
+  r->kC = o->k1;
+  r->T = malloc((size_t)r->nx * sizeof *r->T);
+  r->C = malloc((size_t)o->k1 * o->k1 * sizeof *r->C);
+  if (o->want_yx) r->T_yx = malloc((size_t)r->ny * sizeof *r->T_yx);
+  return r->T && r->C && (!o->want_yx || r->T_yx) ? SM_OK : SM_ENOMEM;
+}
+
+/* The intrinsic left/right symmetry of Y as a point map S: Y -> Y: a coarse self-map asking
+ * for an orientation-reversing C, refined by ZoomOut in the LB basis (a symmetry is an
+ * isometry, which the LB basis represents well). */
+static int self_symmetry(const sm_shape *y, const sm_match_opts *o, int32_t *S, sm_error *err) {
+  sm_match_opts so = *o;
+  so.basis = SM_MATCH_LB;
+  so.init = SM_INIT_NN;
+  so.nlandmarks = 0;
+  so.landmarks = NULL;
+  so.k1 = o->k1 < y->lb->k ? o->k1 : y->lb->k;
+  so.k0 = o->k0 < so.k1 ? o->k0 : so.k1;
+  int k = so.coarse_k;
+  double *C0 = malloc((size_t)k * k * sizeof *C0), *C = malloc((size_t)so.k1 * so.k1 * sizeof *C);
+  int rc = (!C0 || !C) ? sm_error_set(err, SM_ENOMEM, "symmetry: out of memory") : SM_OK;
+  if (!rc) rc = coarse_map(y, y, &so, -1, C0, err);
+  if (!rc) rc = initial_map(y, y, &so, C0, S, err);
+  if (!rc) rc = refine(y, y, &so, S, C, NULL, err);
+  free(C0);
+  free(C);
+  return rc;
+}
+
+/* A mirrored result (most image triangles flipped) means the descriptors led to the
+ * symmetric solution. Compose it with Y's own symmetry, refine, and keep whichever result
+ * preserves orientation better. */
+static int fix_orientation(const sm_shape *x, const sm_shape *y, const sm_match_opts *o,
+                           sm_match_result *res, sm_error *err) {
+  sm_match_result alt;
+  int32_t *S = malloc((size_t)y->mesh->nv * sizeof *S);
+  int rc = (!S || result_alloc(&alt, x, y, o)) ? SM_ENOMEM : SM_OK;
+  if (rc) {
+    free(S);
+    if (S) sm_match_result_free(&alt);
+    return sm_error_set(err, SM_ENOMEM, "match: out of memory");
+  }
+  double t0 = sm_now();
+  rc = self_symmetry(y, o, S, err);
+  for (int32_t i = 0; !rc && i < res->nx; i++) alt.T[i] = S[res->T[i]];
+  if (!rc) rc = refine(x, y, o, alt.T, alt.C, alt.T_yx, err);
+  free(S);
+  res->t_refine += sm_now() - t0;
+  if (!rc) alt.orientation = sm_map_orientation_score(x->mesh, y->mesh, alt.T);
+  if (!rc && alt.orientation > res->orientation) {
+    alt.flipped = 1;
+    alt.t_init = res->t_init;
+    alt.t_refine = res->t_refine;
+    alt.init_distinct = res->init_distinct;
+    sm_match_result_free(res);
+    *res = alt;
+  } else {
+    sm_match_result_free(&alt);
+  }
+  return rc;
+}
+
+int sm_match(const sm_shape *x, const sm_shape *y, const sm_match_opts *o,
+             sm_match_result *res, sm_error *err) {
+  int rc = check_opts(x, y, o, err);
+  if (rc) return rc;
+  if (result_alloc(res, x, y, o)) {
+    sm_match_result_free(res);
+    return sm_error_set(err, SM_ENOMEM, "match: out of memory");
+  }
+  rc = attempt(x, y, o, +1, res, err);
+  if (!rc && o->orientation_fix && !o->init_map && res->orientation < 0)
+    rc = fix_orientation(x, y, o, res, err);
+  if (rc) sm_match_result_free(res);
+  return rc;
+}
+
+void sm_match_to_input(const sm_shape *x, const sm_shape *y, const int32_t *T, int32_t *out) {
+  const sm_mesh *mx = x->mesh, *my = y->mesh;
+  for (int32_t i = 0; i < mx->n_input; i++) out[i] = -1;
+  for (int32_t v = 0; v < mx->nv; v++) {
+    int32_t src = mx->to_input ? mx->to_input[v] : v, dst = T[v];
+    out[src] = my->to_input ? my->to_input[dst] : dst;
+  }
+}

@@ -1,0 +1,96 @@
+/* sm_match: the SRE-FMaps matching pipeline (algorithm.md §4-6) on prepared shapes.
+ *
+ *   prepare (per shape, cacheable): clean -> normalize to unit area -> LB basis -> elastic
+ *     basis -> WKS descriptors.
+ *   match (per pair): coarse LB functional map from descriptors with the orientation term
+ *     -> initial point map (nearest neighbour, or sparse Sinkhorn, between the aligned
+ *     spectral embeddings) -> ZoomOut refinement in the lb, elastic or hybrid basis ->
+ *     point map X -> Y (and Y -> X), final functional map, orientation score.
+ *
+ * Contract
+ *   sm_shape_prepare copies what it needs from the input mesh (borrowed) and returns a
+ *   shape owned by the caller (sm_shape_destroy). Shapes are read only afterwards: one
+ *   shape may be used by several concurrent sm_match calls. sm_match writes a result the
+ *   caller releases with sm_match_result_free. Vertex indices in results are those of the
+ *   cleaned meshes (shape->mesh); sm_match_to_input translates a map to the caller's
+ *   numbering (mesh->to_input), -1 for input vertices cleaning dropped (unreferenced).
+ *   The cancel callback is polled inside every long loop (SM_ECANCELED).
+ *   Errors: as the modules used (SM_EINVAL for options, with a message).
+ */
+#ifndef SM_MATCH_H
+#define SM_MATCH_H
+
+#include <stdint.h>
+
+#include "sm_basis.h"
+#include "sm_error.h"
+#include "sm_mesh.h"
+
+enum sm_match_basis { SM_MATCH_LB = 1, SM_MATCH_ELASTIC = 2, SM_MATCH_HYBRID = 3 };
+enum sm_match_init { SM_INIT_NN = 1, SM_INIT_SINKHORN = 2 };
+
+typedef struct sm_shape_opts {
+  int k_lb;        /* LB functions (descriptors, coarse map, lb/hybrid refinement) */
+  int k_elastic;   /* elastic functions; 0 = no elastic basis */
+  double eta;      /* bending weight */
+  int n_desc;      /* WKS energies */
+  int (*cancel)(void *ud);
+  void *cancel_ud;
+} sm_shape_opts;
+
+typedef struct sm_shape {
+  sm_mesh *mesh;     /* cleaned, unit area */
+  sm_basis *lb;
+  sm_basis *elastic; /* NULL when k_elastic = 0 */
+  double *desc;      /* n x n_desc column-major WKS */
+  int n_desc;
+  double t_clean, t_lb, t_elastic, t_desc; /* seconds */
+} sm_shape;
+
+void sm_shape_opts_default(sm_shape_opts *o);
+int sm_shape_prepare(const sm_mesh *input, const sm_shape_opts *o, sm_shape **out,
+                     sm_error *err);
+/* Adopts already computed parts (e.g. bases loaded from a cache): takes ownership of mesh,
+ * lb and elastic (may be NULL), computes the descriptors. */
+int sm_shape_assemble(sm_mesh *mesh, sm_basis *lb, sm_basis *elastic, int n_desc,
+                      sm_shape **out, sm_error *err);
+void sm_shape_destroy(sm_shape *s);
+
+typedef struct sm_match_opts {
+  int basis;        /* enum sm_match_basis (default elastic) */
+  int init;         /* enum sm_match_init (default sinkhorn) */
+  int k0, k1, step; /* refinement schedule */
+  int coarse_k;     /* LB functions of the coarse map */
+  int sinkhorn_k;   /* sparse kernel: neighbours per point and direction */
+  int samples;      /* farthest-point samples for intermediate refinement iterations */
+  int orientation_fix; /* try the other orientation when the result looks mirrored */
+  const int32_t *landmarks; /* nlandmarks pairs (x, y), cleaned indices; may be NULL */
+  int nlandmarks;
+  const int32_t *init_map;  /* optional initial map X -> Y (cleaned indices): skips init */
+  int want_yx;      /* also compute the Y -> X map */
+  int (*cancel)(void *ud);
+  void *cancel_ud;
+} sm_match_opts;
+
+typedef struct sm_match_result {
+  int32_t nx, ny;
+  int32_t *T;        /* nx: X -> Y */
+  int32_t *T_yx;     /* ny: Y -> X, or NULL */
+  double *C;         /* k1 x k1 functional map of the refinement basis (the first pair) */
+  int kC;
+  double orientation;       /* sm_map_orientation_score of T, in [-1, 1] */
+  double init_distinct;     /* distinct targets of the initial map / min(nx, ny) */
+  int flipped;              /* 1 if the orientation fix replaced the first result */
+  double t_init, t_refine;  /* seconds */
+} sm_match_result;
+
+void sm_match_opts_default(sm_match_opts *o);
+int sm_match(const sm_shape *x, const sm_shape *y, const sm_match_opts *o,
+             sm_match_result *res, sm_error *err);
+void sm_match_result_free(sm_match_result *res);
+
+/* out[input vertex of X] = input vertex of Y (or -1), from T on the cleaned meshes.
+ * out has x->mesh->n_input entries. */
+void sm_match_to_input(const sm_shape *x, const sm_shape *y, const int32_t *T, int32_t *out);
+
+#endif
