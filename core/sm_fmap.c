@@ -280,6 +280,7 @@ typedef struct zpair {
 typedef struct zctx {
   const sm_zoomout_opts *o;
   int np, Dmax, niter;
+  int full_y_last;     /* final iterations with every Y vertex as candidate */
   zpair p[SM_FMAP_MAX_PAIRS];
   int32_t nx, ny;
   int32_t nfit, ncand; /* fit set (X samples or all X); Y candidates of intermediate steps */
@@ -314,7 +315,7 @@ static int check_zoomout(const sm_fmap_pair *pairs, int np, const sm_zoomout_opt
                          const int32_t *T0, int32_t *T, sm_error *err) {
   int rc = check_pairs(pairs, np, err);
   if (rc) return rc;
-  if (!o || o->step < 1 || o->nsample_x < 0 || o->nsample_y < 0 || !T)
+  if (!o || o->step < 1 || o->nsample_x < 0 || o->nsample_y < 0 || o->full_y_last < 0 || !T)
     return sm_error_set(err, SM_EINVAL, "zoomout: bad options (step %d, samples %d/%d)",
                         o ? o->step : 0, o ? o->nsample_x : 0, o ? o->nsample_y : 0);
   for (int p = 0; p < np; p++)
@@ -453,26 +454,29 @@ static int zfmap(zctx *z, zpair *q, sm_error *err) {
   return info ? sm_error_set(err, SM_ENUMERIC, "zoomout: dpotrs failed (info %d)", info) : 0;
 }
 
-/* Embeds the queries (X samples, or all) and the candidates (Y samples, or all). */
-static void zembed(zctx *z, int full, int D) {
-  int32_t nq = full || !z->fit ? z->nx : z->nfit;
-  int32_t nc = full || !z->cand ? z->ny : z->ncand;
+/* Embeds the queries (X samples, or all X when full_q) and the candidates (Y samples, or
+ * all Y when full_c). */
+static void zembed(zctx *z, int full_q, int full_c, int D) {
+  int32_t nq = full_q || !z->fit ? z->nx : z->nfit;
+  int32_t nc = full_c || !z->cand ? z->ny : z->ncand;
   for (int p = 0, off = 0; p < z->np; off += z->p[p].k, p++) {
     const zpair *q = &z->p[p];
     for (int32_t r = 0; r < nq; r++) {
-      int32_t v = full || !z->fit ? r : z->fit[r];
+      int32_t v = full_q || !z->fit ? r : z->fit[r];
       const double *u = q->UX + (size_t)v * q->K;
       double *e = z->EX + (size_t)r * D + off;
       for (int c = 0; c < q->k; c++) e[c] = q->w * u[c];
     }
-    const double *UY = full || !z->cand ? q->UY : q->UYc;
+    const double *UY = full_c || !z->cand ? q->UY : q->UYc;
     apply_map(UY, q->K, nc, q->k, q->Cw, q->w, z->EY + off, D);
   }
 }
 
-/* One iteration: fit every pair at its k, embed, assign. The last one maps all of X. */
+/* One iteration: fit every pair at its k, embed, assign. The last one maps all of X to all
+ * of Y; the full_y_last - 1 before it already take all of Y as candidates, so that the last
+ * fit does not inherit the resolution of the Y sample. */
 static int ziterate(zctx *z, int t, int32_t *T, sm_error *err) {
-  int last = t == z->niter - 1, D = 0, rc = 0;
+  int last = t == z->niter - 1, full_c = t >= z->niter - z->full_y_last, D = 0, rc = 0;
   double t0 = sm_now();
   for (int p = 0; p < z->np && !rc; p++) {
     z->p[p].k = k_at(z, p, t);
@@ -481,12 +485,12 @@ static int ziterate(zctx *z, int t, int32_t *T, sm_error *err) {
   }
   if (rc) return rc;
   double t1 = sm_now();
-  zembed(z, last, D);
+  zembed(z, last, full_c, D);
   double t2 = sm_now();
   int32_t nq = last || !z->fit ? z->nx : z->nfit;
-  int32_t nc = last || !z->cand ? z->ny : z->ncand;
+  int32_t nc = full_c || !z->cand ? z->ny : z->ncand;
   int32_t *out = last ? T : z->Tfit;
-  rc = assign(z->EY, nc, z->EX, nq, D, last ? NULL : z->cand, &z->o->knn, out, err);
+  rc = assign(z->EY, nc, z->EX, nq, D, full_c ? NULL : z->cand, &z->o->knn, out, err);
   z->st.t_fmap += t1 - t0;
   z->st.t_embed += t2 - t1;
   z->st.t_knn += sm_now() - t2;
@@ -520,6 +524,7 @@ int sm_zoomout(const sm_fmap_pair *pairs, int npairs, const sm_zoomout_opts *o,
   z.nx = pairs[0].x->n;
   z.ny = pairs[0].y->n;
   z.niter = (pairs[0].k - pairs[0].k0 + o->step - 1) / o->step + 1;
+  z.full_y_last = o->full_y_last > 0 ? o->full_y_last : 3;
   rc = zsetup(&z, pairs, T0, err);
   for (int t = 0; t < z.niter && !rc; t++) {
     if (o->cancel && o->cancel(o->cancel_ud)) {

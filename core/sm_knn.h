@@ -44,7 +44,9 @@ enum sm_knn_strategy { SM_KNN_AUTO = 0, SM_KNN_KDTREE = 1, SM_KNN_BRUTE = 2 };
 typedef struct sm_knn_opts {
   int strategy;     /* SM_KNN_AUTO (default), SM_KNN_KDTREE or SM_KNN_BRUTE */
   int crossover_d;  /* AUTO: kd-tree for d < crossover_d; 0 = SM_KNN_CROSSOVER_D */
-  int threads;      /* kd-tree search threads (OpenMP inside FLANN); 0 = 2 */
+  int threads;      /* kd-tree search threads (OpenMP inside FLANN); 0 = 1: FLANN's
+                     * OpenMP workers spin after each search and starved the next BLAS
+                     * calls (ZoomOut's fit GEMMs ran 5x slower with 2) */
   int leaf_size;    /* kd-tree leaf size; 0 = 10 */
 } sm_knn_opts;
 

@@ -427,7 +427,8 @@ typedef struct zcase {
   sm_fmap_pair pr[2];
 } zcase;
 
-static void run_zoomout_case(const shape_pair *s, const zcase *c, int nsample, int noisy) {
+static void run_zoomout_case(const shape_pair *s, const zcase *c, int nsample, int nsy,
+                             int noisy) {
   int32_t n = s->mx->nv, *T = malloc((size_t)n * sizeof *T), *Tyx = malloc((size_t)n * sizeof *T);
   if (noisy)
     noisy_start(s->mx, s->truth, 0.3, 777, T);
@@ -437,6 +438,7 @@ static void run_zoomout_case(const shape_pair *s, const zcase *c, int nsample, i
   sm_zoomout_opts o;
   sm_zoomout_opts_default(&o);
   o.nsample_x = nsample;
+  o.nsample_y = nsy;
   o.pos_x = s->mx->V;
   o.pos_y = s->my->V;
   double C0[40 * 40], C1[40 * 40];
@@ -449,11 +451,19 @@ static void run_zoomout_case(const shape_pair *s, const zcase *c, int nsample, i
   int wrong = count_diff(T, s->truth, n), wrong_yx = 0;
   for (int32_t i = 0; i < n; i++) wrong_yx += Tyx[s->truth[i]] != i;
   double me = mean_error(s->my, T, s->truth, n);
-  fprintf(stderr, "zoomout %-8s samples %4d start %4d wrong -> %d wrong (yx %d), mean err %.2e, "
-          "%d it, %.3f s\n", c->name, nsample, wrong0, wrong, wrong_yx, me, st.iterations,
+  fprintf(stderr, "zoomout %-8s samples %4d/%4d start %4d wrong -> %d wrong (yx %d), mean err %.2e, "
+          "%d it, %.3f s\n", c->name, nsample, nsy, wrong0, wrong, wrong_yx, me, st.iterations,
           st.t_total);
-  CHECK_MSG(wrong == 0 && wrong_yx == 0, "%s from %s: %d (%d) of %d vertices wrong", c->name,
-            noisy ? "noisy" : "exact", wrong, wrong_yx, n);
+  /* Sampling Y blurs the intermediate maps (sm_fmap.h): a few vertices may stay a ring off. */
+  int tol = nsy ? n / 20 : 0;
+  CHECK_MSG(wrong <= tol && wrong_yx <= tol, "%s from %s: %d (%d) of %d vertices wrong",
+            c->name, noisy ? "noisy" : "exact", wrong, wrong_yx, n);
+  CHECK(me < (nsy ? 2e-3 : 1e-12));
+  if (nsy) {
+    free(T);
+    free(Tyx);
+    return;
+  }
   /* The returned C is the map of the returned T: P -> C of the truth at the final k. */
   double Ct[40 * 40];
   for (int p = 0; p < c->np; p++) {
@@ -476,10 +486,12 @@ static void test_zoomout_permuted(void) {
       {"hybrid", 2, {{s.lbx, s.lby, 40, 6, 1.0}, {s.elx, s.ely, 30, 6, 1.0}}},
   };
   for (int c = 0; c < 3; c++) {
-    run_zoomout_case(&s, &cases[c], 0, 0);   /* exact start stays exact */
-    run_zoomout_case(&s, &cases[c], 300, 0); /* also with sampled iterations */
-    run_zoomout_case(&s, &cases[c], 0, 1);   /* noisy start converges */
-    run_zoomout_case(&s, &cases[c], 300, 1);
+    run_zoomout_case(&s, &cases[c], 0, 0, 0);   /* exact start stays exact */
+    run_zoomout_case(&s, &cases[c], 300, 0, 0); /* also with sampled iterations */
+    run_zoomout_case(&s, &cases[c], 0, 0, 1);   /* noisy start converges */
+    run_zoomout_case(&s, &cases[c], 300, 0, 1);
+    run_zoomout_case(&s, &cases[c], 300, 300, 0); /* Y sampled too */
+    run_zoomout_case(&s, &cases[c], 300, 300, 1);
   }
   free_pair(&s);
 }
