@@ -13,9 +13,27 @@
  *   kd-tree: FLANN's exact single tree; distances are recomputed the same direct way so
  *   that both strategies agree bit for bit.
  *
- * Crossover (measured with bench-style timing, this machine: 2 cores, OpenBLAS pthreads,
- * FLANN with 2 OpenMP threads, K = 1, build + query, seconds):
- *   see SM_KNN_CROSSOVER_D in sm_knn.h and the table at sm_knn_crossover below.
+ * Crossover (build + query, K = 1, best of 2 runs, seconds; 2 cores shared with other
+ * jobs, load ~5, so absolute figures are ~2x pessimistic; FLANN with 2 threads here):
+ *   uniform random in [0,1]^d, 5k x 5k:
+ *     d        3      8     12     16     20     32     64    100    200
+ *     kd-tree  0.003  0.019  0.089  0.221  0.306  0.383  0.628  0.895  1.423
+ *     brute    0.044  0.049  0.050  0.068  0.052  0.058  0.089  0.135  0.196
+ *   uniform random, 15k x 15k:
+ *     kd-tree  0.022  0.128  0.546  1.305  4.837  6.362  (not run above d = 32)
+ *     brute    0.499  0.557  0.431  0.854  0.861  0.810  1.298  1.980  4.410
+ *   LB eigenfunction rows of a torus, queries = the same rows +-2.5% (what ZoomOut sees
+ *   once converged: points on a 2-manifold, queries close to the data), 5k x 5k:
+ *     kd-tree  0.006  0.008  0.008  0.012  0.010  0.014  0.015  0.017  0.042
+ *     brute    0.159  0.078  0.076  0.081  0.075  0.114  0.126  0.169  0.302
+ *   (15k x 15k: kd-tree 0.03-0.2 s at every d up to 300, brute 1-2.9 s.)
+ *   Inside ZoomOut (cat0 -> cat1 of TOSCA, 5k vertices, k = 20..100, 2000 X samples
+ *   against all of Y, total kNN seconds): all brute 8.3, crossover 12: 7.5, 24: 12.9
+ *   (noisy), 32: 7.7: queries far from the data (a map still being refined) cost the
+ *   kd-tree as much as random data. Uniform data put the crossover at d ~ 10-12; manifold
+ *   data near convergence favour the kd-tree at every d; ZoomOut is in between and flat
+ *   from 12 to 32. Default: 16. (The table's brute figures predate the compare-only scan,
+ *   which made brute force ~1.5x faster at low d: the crossover only moves down.)
  */
 #include "sm_knn.h"
 

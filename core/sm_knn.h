@@ -39,7 +39,7 @@
 enum sm_knn_strategy { SM_KNN_AUTO = 0, SM_KNN_KDTREE = 1, SM_KNN_BRUTE = 2 };
 
 /* Default dimension from which AUTO uses brute force (see the measurement in sm_knn.c). */
-#define SM_KNN_CROSSOVER_D 24
+#define SM_KNN_CROSSOVER_D 16
 
 typedef struct sm_knn_opts {
   int strategy;     /* SM_KNN_AUTO (default), SM_KNN_KDTREE or SM_KNN_BRUTE */
