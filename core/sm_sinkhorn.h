@@ -1,5 +1,5 @@
 /* sm_sinkhorn: entropy-regularized optimal transport between two point sets over a sparse
- * kernel, solved on the dual potentials in the log domain with eps annealing. Spec:
+ * kernel, solved on the dual potentials (log-domain stable) with eps annealing. Spec:
  * ../shared/design/algorithm.md §5 ("Sinkhorn init").
  *
  * Problem. Points F (nx x d) and G (ny x d), row-major; cost C_ij = |f_i - g_j|^2; masses
@@ -27,8 +27,16 @@
  * matches the dense solution, at the price of an all-pairs scan per round. The unbalanced
  * mode (rho > 0) converges linearly (rate rho/(rho+eps)) on any support, but it destroys
  * mass where the support is thin (rho = 1: 19% L1 row error, lower bijectivity).
- * Nearest neighbours: exact FLANN kd-tree (FLANN_INDEX_KDTREE_SINGLE, unlimited checks)
- * for small d, exact blocked brute force (BLAS dgemm) otherwise.
+ * Nearest neighbours: sm_knn (exact; kd-tree at small d, blocked dgemm brute force
+ * otherwise), one index per direction.
+ *
+ * Iteration. Sinkhorn in scaling form on a stabilized kernel K_ij = exp((f_i + g_j -
+ * C_ij)/eps) stored once per support entry, u = a / (K v), v = b / (K^T u) in a single
+ * sweep, with log u, log v absorbed into f, g when they leave [e^-50, e^50] and at each
+ * eps change (Schmitzer 2019). It computes the log-domain iterates (same duals, same
+ * residual) at a fraction of the cost, and falls back to a log-domain step where a
+ * kernel sum underflows, so any eps > 0 works. opts.log_domain selects the plain
+ * log-domain iteration (reference). Details: the DESIGN comment in sm_sinkhorn.c.
  *
  * Scale. eps, rho and the re-truncation threshold are given relative to
  *     c0 = mean of C_ij over the K-NN entries of S,
@@ -40,8 +48,7 @@
  *   otherwise they must be finite, > 0 and sum to 1 within 1e-6 (they are rescaled to sum
  *   to exactly 1). *plan is allocated here and owned by the caller (sm_plan_destroy); on
  *   error *plan is NULL. No global state: calls on distinct outputs may run concurrently
- *   (FLANN's process-wide distance type is read, never changed; BLAS threading is the
- *   caller's business). The cancel callback, if set, is polled once per iteration.
+ *   (sm_knn serializes its FLANN calls; BLAS threading is the caller's business). The cancel callback, if set, is polled once per iteration.
  *   Errors: SM_EINVAL (sizes, options, masses; the message says which), SM_ENONFINITE
  *   (NaN/Inf coordinate), SM_ENOMEM, SM_ELIMIT (re-truncation keeps too many entries),
  *   SM_ENUMERIC (nearest-neighbour library failure or non-finite duals), SM_ECANCELED.
@@ -71,8 +78,11 @@ typedef struct sm_sinkhorn_opts {
   double theta;     /* > 0: after the last level, re-truncate the support from the duals
                        (keep (i, j) with P_ij >= exp(-theta) * min(a_i, b_j), searched
                        over all pairs) and iterate again; 0: off */
-  int knn;          /* enum sm_knn_strategy (default AUTO: kd-tree for d <= 16) */
-  int threads;      /* FLANN search threads (default 1) */
+  int knn;          /* enum sm_knn_strategy (default AUTO: sm_knn's rule, kd-tree for
+                       d < SM_KNN_CROSSOVER_D) */
+  int threads;      /* threads of the kd-tree search (default 1) */
+  int log_domain;   /* 1: plain log-domain iterations, no kernel scaling (the slow
+                       reference path; for tests and measurements) */
   int (*cancel)(void *ud); /* nonzero = stop (SM_ECANCELED); may be NULL */
   void *cancel_ud;
 } sm_sinkhorn_opts;
@@ -81,6 +91,8 @@ typedef struct sm_sinkhorn_stats {
   int iterations;      /* all levels together (one iteration = row + column update) */
   int levels;          /* eps levels run */
   int converged;       /* 1 if the last level reached tol */
+  int absorptions;     /* kernel recomputations inside levels (scalings out of bounds,
+                          or log-domain fallback steps) */
   double c0;           /* cost scale (absolute) */
   double eps;          /* final eps (absolute) */
   double residual;     /* last L1 residual of the row optimality condition */

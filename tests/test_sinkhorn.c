@@ -303,6 +303,48 @@ static void test_retruncation(void) {
   free(F), free(G), free(a), free(b), free(P);
 }
 
+/* Kernel scaling with absorption against the plain log-domain iteration on the same
+ * problem: the same iterates in exact arithmetic, so the plans agree to rounding, down to
+ * eps where the kernel exp(-C/eps) underflows. Cold starts at a tiny eps (f = g = 0, the
+ * kernel sums vanish) and large eps steps force the fallback and the absorptions. */
+static void test_absorption_vs_log_domain(void) {
+  enum { NX = 80, NY = 70, D = 3, NC = 6 };
+  double *F = points(NX, D, -1, 1), *G = points(NY, D, -1, 1), *a = masses(NX), *b = masses(NY);
+  struct { int k; double rho, eps_start, eps_end, decay; int absorbs; } cs[NC] = {
+      {1000, 0, 1, 1e-4, 0.5, 0},     {5, 0, 1, 1e-3, 0.5, 0},
+      {5, 0.5, 1, 1e-3, 0.5, 0},      {1000, 0.2, 1, 1e-5, 0.5, 0},
+      {1000, 0, 1e-4, 1e-4, 0.5, 1},  {5, 0, 1, 1e-5, 0.01, 1}};
+  for (int c = 0; c < NC; c++) {
+    sm_sinkhorn_opts o;
+    sm_sinkhorn_opts_default(&o);
+    o.k = cs[c].k, o.rho = cs[c].rho, o.eps_start = cs[c].eps_start;
+    o.eps_end = cs[c].eps_end, o.decay = cs[c].decay;
+    o.max_iter = 100, o.tol = 1e-15;
+    sm_plan *p = NULL, *q = NULL;
+    sm_sinkhorn_stats st, sq_;
+    sm_error e;
+    REQUIRE(sm_sinkhorn(F, NX, G, NY, D, a, b, &o, &p, &st, &e) == 0);
+    o.log_domain = 1;
+    REQUIRE(sm_sinkhorn(F, NX, G, NY, D, a, b, &o, &q, &sq_, &e) == 0);
+    REQUIRE(p->nnz == q->nnz);
+    double m = 0;
+    for (int64_t t = 0; t < p->nnz; t++) m = fmax(m, fabs(p->val[t] - q->val[t]));
+    CHECK_MSG(m < 1e-9, "case %d: max |P_scaling - P_log| = %g", c, m);
+    CHECK(memcmp(p->col, q->col, sizeof(int32_t) * (size_t)p->nnz) == 0);
+    CHECK(plan_finite(p) && sq_.absorptions == 0);
+    CHECK_MSG(st.iterations == sq_.iterations || (st.converged && sq_.converged),
+              "case %d: %d vs %d iterations", c, st.iterations, sq_.iterations);
+    if (cs[c].absorbs) {
+      CHECK(exp(-st.c0 / st.eps) == 0.0); /* exp(-C/eps) underflows */
+      CHECK_MSG(st.absorptions > 0, "case %d: no absorption", c);
+    }
+    fprintf(stderr, "absorption vs log domain, case %d: |dP| %.2g, %d it, %d absorptions\n", c,
+            m, st.iterations, st.absorptions);
+    sm_plan_destroy(p), sm_plan_destroy(q);
+  }
+  free(F), free(G), free(a), free(b);
+}
+
 static int expect_einval(const char *what, int rc, const sm_error *e, const sm_plan *p) {
   CHECK_MSG(rc == SM_EINVAL && e->code == SM_EINVAL && e->msg[0] && !p, "%s: rc=%d msg='%s'",
             what, rc, e->msg);
@@ -369,6 +411,7 @@ int main(void) {
   test_permutation(2000, 30, SM_KNN_AUTO);
   test_feasibility();
   test_retruncation();
+  test_absorption_vs_log_domain();
   test_bad_args();
   test_cancel();
   return sm_test_finish();
