@@ -10,10 +10,11 @@
  * estimated functional map do. The map error is the torus distance between p_i and
  * phi(q_{T[i]}), T the row argmax; both schedules should give about the same.
  *
- * Usage: bench_sinkhorn [-r reps] [-t threads] [n ...]   (default n: 5000 15000; d 20, 60)
+ * Usage: bench_sinkhorn [-r reps] [-t threads] [n ...]   (default n: 5000 15000; d 20, 60;
+ * threads: opts.threads of both schedules, default the library's)
  * Prints medians over reps of total, neighbour search, setup and iteration seconds.
- * BLAS threads are the environment's business: run with OPENBLAS_NUM_THREADS=1 for a
- * single-threaded comparison.
+ * BLAS threads are the environment's business: run with OPENBLAS_NUM_THREADS=1 so that
+ * only opts.threads adds threads.
  */
 #include <math.h>
 #include <stdint.h>
@@ -165,7 +166,7 @@ static double bench(const char *name, const dataset *ds, const sm_sinkhorn_opts 
 }
 
 int main(int argc, char **argv) {
-  int reps = 5, threads = 1, ns[8], nn = 0;
+  int reps = 5, threads = 0, ns[8], nn = 0; /* threads 0: the library's default */
   for (int a = 1; a < argc; a++) {
     if (!strcmp(argv[a], "-r") && a + 1 < argc) reps = atoi(argv[++a]);
     else if (!strcmp(argv[a], "-t") && a + 1 < argc) threads = atoi(argv[++a]);
@@ -177,11 +178,11 @@ int main(int argc, char **argv) {
   sm_sinkhorn_opts old, cur;
   sm_sinkhorn_opts_default(&old);
   old.eps_start = 1.0, old.eps_end = 0.01, old.decay = 0.5, old.max_iter = 50, old.tol = 1e-6;
-  old.threads = threads;
+  if (threads > 0) old.threads = threads;
   sm_sinkhorn_opts_default(&cur);
-  cur.threads = threads;
+  if (threads > 0) cur.threads = threads;
   printf("bench_sinkhorn: reps %d, threads %d; new default: eps %g -> %g, decay %g, "
-         "max_iter %d, tol %g, k %d\n", reps, threads, cur.eps_start, cur.eps_end, cur.decay,
+         "max_iter %d, tol %g, k %d\n", reps, cur.threads, cur.eps_start, cur.eps_end, cur.decay,
          cur.max_iter, cur.tol, cur.k);
   for (int a = 0; a < nn; a++)
     for (int b = 0; b < 2; b++) {

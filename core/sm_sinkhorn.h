@@ -21,7 +21,13 @@
  * and Sinkhorn then converges sublinearly. On spectral-like embeddings (5k points, d=20,
  * K=16) the L1 row error is ~2e-2 after 330 iterations and ~2e-3 after 3000, while the
  * row-argmax map is already stable (distinct targets 0.96, 0.99 with the bijective
- * extraction). Hence the small default max_iter: the map, not the marginals, is the goal.
+ * extraction). Hence the short default schedule: the map, not the marginals, is the goal.
+ * The typical input is already aligned (embeddings through a functional map), so the
+ * schedule starts at 0.3 c0, not c0, with 20 iterations per level (80 on the last):
+ * 180 iterations in all. On bench_sinkhorn's torus data (5k points, d = 20 and 60) it
+ * ends at L1 row error 4e-2 (1e-2 after the former 1 c0 / 50 iterations, 550 in all), with
+ * a mean map error 15% lower (0.085 vs 0.100: the argmax of a less converged plan sits
+ * nearer the neighbours) and distinct targets 0.95 (vs 0.96).
  * The cure for exact marginals is re-truncation (theta > 0), which replaces the K-NN
  * support by the entries the duals ask for, repeated until it no longer grows; it then
  * matches the dense solution, at the price of an all-pairs scan per round. The unbalanced
@@ -66,10 +72,10 @@
 /* Every field's 0 means "default", so `sm_sinkhorn_opts o = {0};` is a valid start. */
 typedef struct sm_sinkhorn_opts {
   int k;            /* neighbours per point and direction (default 16); >= ny/nx = dense */
-  double eps_start; /* first eps, relative to c0 (default 1) */
+  double eps_start; /* first eps, relative to c0 (default 0.3) */
   double eps_end;   /* last eps, relative to c0 (default 0.01) */
   double decay;     /* eps_{l+1} = max(eps_end, decay * eps_l), in (0, 1) (default 0.5) */
-  int max_iter;     /* iterations per eps level (default 50; the last level gets 4x) */
+  int max_iter;     /* iterations per eps level (default 20; the last level gets 4x) */
   double tol;       /* L1 marginal residual ending the last level (default 1e-6);
                        intermediate levels stop at max(tol, 1e-3) */
   double rho;       /* > 0: unbalanced with marginal penalty rho * c0; 0: balanced */
@@ -80,7 +86,8 @@ typedef struct sm_sinkhorn_opts {
                        over all pairs) and iterate again; 0: off */
   int knn;          /* enum sm_knn_strategy (default AUTO: sm_knn's rule, kd-tree for
                        d < SM_KNN_CROSSOVER_D) */
-  int threads;      /* threads of the kd-tree search (default 1) */
+  int threads;      /* neighbour search threads (default 2): the kd-tree search's, or
+                       the two brute-force directions run concurrently */
   int log_domain;   /* 1: plain log-domain iterations, no kernel scaling (the slow
                        reference path; for tests and measurements) */
   int (*cancel)(void *ud); /* nonzero = stop (SM_ECANCELED); may be NULL */
