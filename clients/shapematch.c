@@ -6,6 +6,8 @@
  *   encode MESH -o OUT.drc [--qbits Q]                        Draco-encode (order-preserving)
  *   synth  sphere|torus|blob [...] -o OUT.off                 write a mesh of our own
  *   match  A B [options] [-o MAP.txt] [--json]                point map A -> B (local)
+ *   distance A B [options] [--json]                           shape distance (local)
+ *   eval   A B --map MAP.txt [--gt GT --gt-kind K ...]        metrics of a point map
  * Exit status: 0 success, 1 failure (message on stderr), 2 usage error.
  */
 #include <stdio.h>
@@ -19,6 +21,8 @@
 #include "sm_shell.h"
 #include "sm_synth.h"
 #include "sm_match.h"
+#include "sm_distance.h"
+#include "sm_metrics.h"
 
 #define SM_VERSION "0.1.0"
 
@@ -42,6 +46,12 @@ static int usage(FILE *f) {
           "        dense point map from A to B: line i of MAP.txt = vertex of B (0-based, B's\n"
           "        numbering) matched to vertex i of A; -1 for vertices cleaning dropped.\n"
           "        Landmarks: lines 'a b' of 0-based vertex pairs.\n"
+          "  distance A B [match options] [--json]\n"
+          "        cosine shape distance in [0, 2] after matching both ways; prints the number\n"
+          "  eval A B --map MAP.txt [--gt FILE] [--gt-kind dense|inverse|vts|pairs|identity]\n"
+          "        [--gt-tgt FILE] [--gt-base 0|1] [--json]\n"
+          "        geodesic error (Dijkstra on B's edges / sqrt(area B)), accuracy curve,\n"
+          "        bijectivity, coverage, Chamfer and Dirichlet energy of a map A -> B\n"
           "  version\n",
           SM_SHELL_DEFAULT_ETA);
   return 2;
@@ -360,46 +370,159 @@ static void print_match_json(const match_args *m, const sm_shape *x, const sm_sh
          r->t_init, r->t_refine, t_total, m->out ? m->out : "");
 }
 
-static int cmd_match(int argc, char **argv) {
-  match_args m;
-  if (parse_match_args(argc, argv, &m)) return usage(stderr);
-  double t0 = sm_now();
-  sm_shape *x = NULL, *y = NULL;
-  int32_t *lm = NULL, *init = NULL, *map = NULL;
+typedef struct match_run {
+  sm_shape *x, *y;
+  int32_t *lm, *init;
   sm_match_result r;
-  memset(&r, 0, sizeof r);
-  int rc = prepare_shape(m.a, &m.so, &x) || prepare_shape(m.b, &m.so, &y);
-  if (!rc) rc = translate_inputs(&m, x, y, &lm, &init);
+  double t_total;
+} match_run;
+
+static void match_run_free(match_run *mr) {
+  free(mr->lm);
+  free(mr->init);
+  sm_match_result_free(&mr->r);
+  sm_shape_destroy(mr->x);
+  sm_shape_destroy(mr->y);
+}
+
+static int run_match(match_args *m, match_run *mr) {
+  memset(mr, 0, sizeof *mr);
+  double t0 = sm_now();
+  int rc = prepare_shape(m->a, &m->so, &mr->x) || prepare_shape(m->b, &m->so, &mr->y);
+  if (!rc) rc = translate_inputs(m, mr->x, mr->y, &mr->lm, &mr->init);
   if (!rc) {
     sm_error err;
-    m.mo.want_yx = m.out_yx != NULL;
-    if (sm_match(x, y, &m.mo, &r, &err)) rc = fail("match", &err);
+    if (sm_match(mr->x, mr->y, &m->mo, &mr->r, &err)) rc = fail("match", &err);
   }
+  mr->t_total = sm_now() - t0;
+  return rc;
+}
+
+static int cmd_match(int argc, char **argv) {
+  match_args m;
+  match_run mr;
+  if (parse_match_args(argc, argv, &m)) return usage(stderr);
+  m.mo.want_yx = m.out_yx != NULL;
+  int rc = run_match(&m, &mr);
+  const sm_shape *x = mr.x, *y = mr.y;
   if (!rc) {
-    map = malloc((size_t)x->mesh->n_input * sizeof *map);
-    sm_match_to_input(x, y, r.T, map);
+    int32_t *map = malloc((size_t)x->mesh->n_input * sizeof *map);
+    sm_match_to_input(x, y, mr.r.T, map);
     if (m.out) rc = write_map(m.out, map, x->mesh->n_input);
+    free(map);
     if (!rc && m.out_yx) {
       int32_t *back = malloc((size_t)y->mesh->n_input * sizeof *back);
-      sm_match_to_input(y, x, r.T_yx, back);
+      sm_match_to_input(y, x, mr.r.T_yx, back);
       rc = write_map(m.out_yx, back, y->mesh->n_input);
       free(back);
     }
-    double t = sm_now() - t0;
-    if (!rc && m.json) print_match_json(&m, x, y, &r, t);
+    if (!rc && m.json) print_match_json(&m, x, y, &mr.r, mr.t_total);
     else if (!rc)
       fprintf(stderr, "matched %d -> %d vertices in %.2f s (bases %.2f, init %.2f, refine %.2f); "
-              "orientation %.3f%s%s%s\n", x->mesh->n_input, y->mesh->n_input, t,
-              x->t_lb + x->t_elastic + y->t_lb + y->t_elastic, r.t_init, r.t_refine,
-              r.orientation, r.flipped ? " (mirror fixed)" : "", m.out ? "; map in " : "",
+              "orientation %.3f%s%s%s\n", x->mesh->n_input, y->mesh->n_input, mr.t_total,
+              x->t_lb + x->t_elastic + y->t_lb + y->t_elastic, mr.r.t_init, mr.r.t_refine,
+              mr.r.orientation, mr.r.flipped ? " (mirror fixed)" : "", m.out ? "; map in " : "",
               m.out ? m.out : "");
   }
+  match_run_free(&mr);
+  return rc ? 1 : 0;
+}
+
+static int cmd_distance(int argc, char **argv) {
+  match_args m;
+  match_run mr;
+  if (parse_match_args(argc, argv, &m)) return usage(stderr);
+  m.mo.want_yx = 1;
+  int rc = run_match(&m, &mr);
+  sm_distance_parts d;
+  sm_error err;
+  if (!rc && sm_shape_distance(mr.x, mr.y, mr.r.T, mr.r.T_yx, &d, &err)) rc = fail("distance", &err);
+  if (!rc) {
+    printf("%.6f\n", d.total);
+    if (m.json)
+      fprintf(stderr, "{\"distance\":%.9f,\"point_xy\":%.9f,\"point_yx\":%.9f,"
+              "\"spectrum_lb\":%.9f,\"spectrum_elastic\":%.9f,\"orientation\":%.6f,"
+              "\"time\":%.4f}\n", d.total, d.point_xy, d.point_yx, d.spectrum_lb,
+              d.spectrum_elastic, mr.r.orientation, mr.t_total);
+    else
+      fprintf(stderr, "distance %.6f (point %.6f / %.6f, LB spectrum %.6f, elastic spectrum "
+              "%.6f) in %.2f s\n", d.total, d.point_xy, d.point_yx, d.spectrum_lb,
+              d.spectrum_elastic, mr.t_total);
+  }
+  match_run_free(&mr);
+  return rc ? 1 : 0;
+}
+
+typedef struct eval_args {
+  const char *a, *b, *map, *gt, *gt_tgt, *kind;
+  int base, json;
+} eval_args;
+
+static int load_gt(const eval_args *e, const sm_mesh *a, const sm_mesh *b, sm_gt **gt,
+                   sm_error *err) {
+  const char *k = e->kind ? e->kind : "dense";
+  if (!strcmp(k, "identity")) return sm_gt_identity(a->nv, gt, err);
+  if (!e->gt) return sm_error_set(err, SM_EINVAL, "--gt FILE is required for --gt-kind %s", k);
+  if (!strcmp(k, "dense")) return sm_gt_load_dense(e->gt, e->base, a->nv, b->nv, gt, err);
+  if (!strcmp(k, "inverse")) return sm_gt_load_inverse(e->gt, e->base, a->nv, b->nv, gt, err);
+  if (!strcmp(k, "pairs")) return sm_gt_load_pairs(e->gt, e->base, a->nv, b->nv, gt, err);
+  if (!strcmp(k, "vts")) {
+    if (!e->gt_tgt) return sm_error_set(err, SM_EINVAL, "--gt-kind vts needs --gt-tgt");
+    return sm_gt_load_vts(e->gt, e->gt_tgt, e->base, a->nv, b->nv, gt, err);
+  }
+  return sm_error_set(err, SM_EINVAL, "unknown --gt-kind %s", k);
+}
+
+static void print_metrics(const sm_metrics *mt, int json) {
+  if (json) {
+    printf("{\"mean_geo_err\":%.9g,\"median_geo_err\":%.9g,\"max_geo_err\":%.9g,"
+           "\"frac_le_0.025\":%.9g,\"frac_le_0.05\":%.9g,\"frac_le_0.1\":%.9g,"
+           "\"auc_0_0.1\":%.9g,\"bijectivity\":%.9g,\"coverage\":%.9g,\"chamfer\":%.9g,"
+           "\"dirichlet\":%.9g}\n", mt->geo.mean, mt->geo.median, mt->geo.max,
+           mt->geo.frac_le_0025, mt->geo.frac_le_005, mt->geo.frac_le_01, mt->geo.auc,
+           mt->bijectivity, mt->coverage, mt->chamfer, mt->dirichlet);
+    return;
+  }
+  printf("mean geodesic error  %.6f (median %.6f, max %.6f; Dijkstra on the target's edges, "
+         "/ sqrt(target area))\n", mt->geo.mean, mt->geo.median, mt->geo.max);
+  printf("fraction <= 0.025 / 0.05 / 0.1   %.4f / %.4f / %.4f   (AUC over [0, 0.1]: %.4f)\n",
+         mt->geo.frac_le_0025, mt->geo.frac_le_005, mt->geo.frac_le_01, mt->geo.auc);
+  printf("bijectivity %.4f  coverage %.4f  chamfer %.6f  dirichlet %.4f\n", mt->bijectivity,
+         mt->coverage, mt->chamfer, mt->dirichlet);
+}
+
+static int cmd_eval(int argc, char **argv) {
+  eval_args e = {0};
+  for (int i = 0; i < argc; i++) {
+    const char *a = argv[i], *v = i + 1 < argc ? argv[i + 1] : NULL;
+    if (!strcmp(a, "--json")) e.json = 1;
+    else if (a[0] != '-') {
+      if (!e.a) e.a = a;
+      else if (!e.b) e.b = a;
+      else return usage(stderr);
+    } else if (!v) return usage(stderr);
+    else if (!strcmp(a, "--map")) e.map = argv[++i];
+    else if (!strcmp(a, "--gt")) e.gt = argv[++i];
+    else if (!strcmp(a, "--gt-tgt")) e.gt_tgt = argv[++i];
+    else if (!strcmp(a, "--gt-kind")) e.kind = argv[++i];
+    else if (!strcmp(a, "--gt-base")) e.base = atoi(argv[++i]);
+    else return usage(stderr);
+  }
+  if (!e.a || !e.b || !e.map) return usage(stderr);
+  sm_error err;
+  sm_mesh *a = NULL, *b = NULL;
+  sm_gt *gt = NULL;
+  int32_t *map = NULL;
+  sm_metrics mt;
+  int rc = sm_mesh_read_file(e.a, NULL, &a, &err) || sm_mesh_read_file(e.b, NULL, &b, &err) ||
+           sm_map_load(e.map, a->nv, b->nv, &map, &err) || load_gt(&e, a, b, &gt, &err) ||
+           sm_metrics_compute(a, b, map, gt, 2, &mt, &err);
+  if (rc) fail("eval", &err);
+  else print_metrics(&mt, e.json);
   free(map);
-  free(lm);
-  free(init);
-  sm_match_result_free(&r);
-  sm_shape_destroy(x);
-  sm_shape_destroy(y);
+  sm_gt_destroy(gt);
+  sm_mesh_destroy(a);
+  sm_mesh_destroy(b);
   return rc ? 1 : 0;
 }
 
@@ -460,6 +583,8 @@ int main(int argc, char **argv) {
   if (!strcmp(cmd, "encode")) return cmd_encode(argc - 2, argv + 2);
   if (!strcmp(cmd, "synth")) return cmd_synth(argc - 2, argv + 2);
   if (!strcmp(cmd, "match")) return cmd_match(argc - 2, argv + 2);
+  if (!strcmp(cmd, "distance")) return cmd_distance(argc - 2, argv + 2);
+  if (!strcmp(cmd, "eval")) return cmd_eval(argc - 2, argv + 2);
   if (!strcmp(cmd, "version") || !strcmp(cmd, "--version")) {
     printf("shapematch %s\n", SM_VERSION);
     return 0;
