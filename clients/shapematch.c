@@ -42,7 +42,7 @@ static int usage(FILE *f) {
           "        order, so any two correspond by identity)\n"
           "  match A B [--basis elastic|lb|hybrid] [--init sinkhorn|nn] [-k K1] [--k0 K0]\n"
           "        [--step S] [--eta E] [--landmarks FILE] [--init-map FILE] [-o MAP.txt]\n"
-          "        [--yx MAP_BA.txt] [--json]\n"
+          "        [--yx MAP_BA.txt] [--single-start] [--json]\n"
           "        dense point map from A to B: line i of MAP.txt = vertex of B (0-based, B's\n"
           "        numbering) matched to vertex i of A; -1 for vertices cleaning dropped.\n"
           "        Landmarks: lines 'a b' of 0-based vertex pairs.\n"
@@ -269,6 +269,7 @@ static int parse_match_args(int argc, char **argv, match_args *m) {
   for (int i = 0; i < argc; i++) {
     const char *a = argv[i], *v = i + 1 < argc ? argv[i + 1] : NULL;
     if (!strcmp(a, "--json")) { m->json = 1; continue; }
+    if (!strcmp(a, "--single-start")) { m->mo.multi_start = 0; continue; }
     if (a[0] != '-') {
       if (!m->a) m->a = a;
       else if (!m->b) m->b = a;
@@ -360,12 +361,14 @@ static void print_match_json(const match_args *m, const sm_shape *x, const sm_sh
   printf("{\"source\":\"%s\",\"target\":\"%s\",\"n_source\":%d,\"n_target\":%d,"
          "\"basis\":\"%s\",\"init\":\"%s\",\"k0\":%d,\"k1\":%d,\"step\":%d,"
          "\"orientation\":%.6f,\"flipped\":%d,\"init_distinct\":%.6f,"
+         "\"start_used\":\"%s\",\"dirichlet\":%.6f,"
          "\"time\":{\"basis\":%.4f,\"init\":%.4f,\"refine\":%.4f,\"total\":%.4f},"
          "\"map\":\"%s\"}\n",
          m->a, m->b, x->mesh->n_input, y->mesh->n_input,
          m->mo.basis == SM_MATCH_LB ? "lb" : m->mo.basis == SM_MATCH_ELASTIC ? "elastic" : "hybrid",
          m->mo.init == SM_INIT_NN ? "nn" : "sinkhorn", m->mo.k0, m->mo.k1, m->mo.step,
          r->orientation, r->flipped, r->init_distinct,
+         r->init_used == SM_INIT_NN ? "nn" : "sinkhorn", r->dirichlet,
          x->t_clean + x->t_lb + x->t_elastic + x->t_desc + y->t_clean + y->t_lb + y->t_elastic + y->t_desc,
          r->t_init, r->t_refine, t_total, m->out ? m->out : "");
 }

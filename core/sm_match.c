@@ -9,6 +9,7 @@
 #include "sm_desc.h"
 #include "sm_eigs.h"
 #include "sm_fmap.h"
+#include "sm_metrics.h"
 #include "sm_shell.h"
 #include "sm_sinkhorn.h"
 
@@ -119,6 +120,7 @@ void sm_match_opts_default(sm_match_opts *o) {
   o->sinkhorn_k = 16;
   o->samples = 2000;
   o->orientation_fix = 1;
+  o->multi_start = 1;
 }
 
 void sm_match_result_free(sm_match_result *r) {
@@ -325,6 +327,8 @@ static int attempt(const sm_shape *x, const sm_shape *y, const sm_match_opts *o,
   r->t_init += t1 - t0;
   r->t_refine += sm_now() - t1;
   if (!rc) r->orientation = sm_map_orientation_score(x->mesh, y->mesh, r->T);
+  if (!rc) rc = sm_map_dirichlet(x->mesh, y->mesh, r->T, &r->dirichlet, err);
+  r->init_used = o->init;
   return rc;
 }
 
@@ -382,6 +386,8 @@ static int fix_orientation(const sm_shape *x, const sm_shape *y, const sm_match_
   free(S);
   res->t_refine += sm_now() - t0;
   if (!rc) alt.orientation = sm_map_orientation_score(x->mesh, y->mesh, alt.T);
+  if (!rc) rc = sm_map_dirichlet(x->mesh, y->mesh, alt.T, &alt.dirichlet, err);
+  alt.init_used = res->init_used;
   if (!rc && alt.orientation > res->orientation) {
     alt.flipped = 1;
     alt.t_init = res->t_init;
@@ -390,6 +396,30 @@ static int fix_orientation(const sm_shape *x, const sm_shape *y, const sm_match_
     sm_match_result_free(res);
     *res = alt;
   } else {
+    sm_match_result_free(&alt);
+  }
+  return rc;
+}
+
+/* Multi-start: the same pipeline from the other initial map; the smoother result wins. */
+static int other_start(const sm_shape *x, const sm_shape *y, const sm_match_opts *o,
+                       sm_match_result *res, sm_error *err) {
+  sm_match_opts o2 = *o;
+  o2.init = o->init == SM_INIT_NN ? SM_INIT_SINKHORN : SM_INIT_NN;
+  sm_match_result alt;
+  if (result_alloc(&alt, x, y, &o2)) {
+    sm_match_result_free(&alt);
+    return sm_error_set(err, SM_ENOMEM, "match: out of memory");
+  }
+  int rc = attempt(x, y, &o2, +1, &alt, err);
+  alt.t_init += res->t_init;
+  alt.t_refine += res->t_refine;
+  if (!rc && alt.dirichlet < res->dirichlet) {
+    sm_match_result_free(res);
+    *res = alt;
+  } else {
+    res->t_init = alt.t_init;
+    res->t_refine = alt.t_refine;
     sm_match_result_free(&alt);
   }
   return rc;
@@ -404,6 +434,7 @@ int sm_match(const sm_shape *x, const sm_shape *y, const sm_match_opts *o,
     return sm_error_set(err, SM_ENOMEM, "match: out of memory");
   }
   rc = attempt(x, y, o, +1, res, err);
+  if (!rc && o->multi_start && !o->init_map) rc = other_start(x, y, o, res, err);
   if (!rc && o->orientation_fix && !o->init_map && res->orientation < 0)
     rc = fix_orientation(x, y, o, res, err);
   if (rc) sm_match_result_free(res);
