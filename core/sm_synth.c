@@ -130,11 +130,14 @@ int sm_synth_blob(int subdiv, double amp, unsigned seed, const double stretch[3]
     }
     for (int d = 0; d < 3; d++) dir[b][d] /= sqrt(n) + 1e-12;
   }
+  /* Bumps of distinct heights, so that no two look alike: intrinsic descriptors can then
+   * tell them apart, as they can tell a head from a hand. */
+  static const double weight[5] = {1.0, -0.45, 0.75, -0.3, 0.55};
   for (int32_t v = 0; v < m->nv; v++) {
     double *p = m->V + 3 * v, r = 1;
     for (int b = 0; b < 5; b++) {
       double c = p[0] * dir[b][0] + p[1] * dir[b][1] + p[2] * dir[b][2];
-      r += amp * (b % 2 ? -0.5 : 1.0) * exp(-4 * (1 - c));
+      r += amp * weight[b] * exp(-6 * (1 - c));
     }
     for (int d = 0; d < 3; d++) p[d] *= r * (stretch ? stretch[d] : 1.0);
   }
