@@ -42,7 +42,7 @@ static int usage(FILE *f) {
           "        order, so any two correspond by identity)\n"
           "  match A B [--basis elastic|lb|hybrid] [--init sinkhorn|nn] [-k K1] [--k0 K0]\n"
           "        [--step S] [--eta E] [--landmarks FILE] [--init-map FILE] [-o MAP.txt]\n"
-          "        [--yx MAP_BA.txt] [--single-start] [--json]\n"
+          "        [--yx MAP_BA.txt] [--fmap C.txt] [--single-start] [--json]\n"
           "        dense point map from A to B: line i of MAP.txt = vertex of B (0-based, B's\n"
           "        numbering) matched to vertex i of A; -1 for vertices cleaning dropped.\n"
           "        Landmarks: lines 'a b' of 0-based vertex pairs.\n"
@@ -256,7 +256,7 @@ static int write_map(const char *path, const int32_t *T, int32_t n) {
 }
 
 typedef struct match_args {
-  const char *a, *b, *out, *out_yx, *landmarks, *init_map;
+  const char *a, *b, *out, *out_yx, *out_fmap, *landmarks, *init_map;
   int json;
   sm_shape_opts so;
   sm_match_opts mo;
@@ -293,6 +293,7 @@ static int parse_match_args(int argc, char **argv, match_args *m) {
     else if (!strcmp(a, "--init-map")) m->init_map = v;
     else if (!strcmp(a, "-o")) m->out = v;
     else if (!strcmp(a, "--yx")) m->out_yx = v;
+    else if (!strcmp(a, "--fmap")) m->out_fmap = v;
     else return -1;
   }
   if (!m->a || !m->b) return -1;
@@ -302,11 +303,21 @@ static int parse_match_args(int argc, char **argv, match_args *m) {
   return 0;
 }
 
+/* A progress line for the long steps, only when a person is watching. */
+static void progress(const char *fmt, const char *arg) {
+  if (!isatty(STDERR_FILENO)) return;
+  fprintf(stderr, "\r\033[K");
+  fprintf(stderr, fmt, arg);
+  fflush(stderr);
+}
+
 static int prepare_shape(const char *path, const sm_shape_opts *so, sm_shape **out) {
   sm_error err;
   sm_mesh *raw;
   if (sm_mesh_read_file(path, NULL, &raw, &err)) return fail(path, &err);
+  progress("computing the bases of %s ...", path);
   int rc = sm_shape_prepare(raw, so, out, &err);
+  progress("%s", "");
   sm_mesh_destroy(raw);
   return rc ? fail(path, &err) : 0;
 }
@@ -373,6 +384,22 @@ static void print_match_json(const match_args *m, const sm_shape *x, const sm_sh
          r->t_init, r->t_refine, t_total, m->out ? m->out : "");
 }
 
+/* The functional map as text: k rows of k numbers, row i = coefficient i on A. */
+static int write_fmap(const char *path, const double *C, int k) {
+  FILE *f = fopen(path, "w");
+  if (!f) {
+    perror(path);
+    return 1;
+  }
+  for (int i = 0; i < k; i++)
+    for (int j = 0; j < k; j++) fprintf(f, "%.17g%c", C[(size_t)j * k + i], j + 1 < k ? ' ' : '\n');
+  if (fclose(f)) {
+    perror(path);
+    return 1;
+  }
+  return 0;
+}
+
 typedef struct match_run {
   sm_shape *x, *y;
   int32_t *lm, *init;
@@ -395,7 +422,10 @@ static int run_match(match_args *m, match_run *mr) {
   if (!rc) rc = translate_inputs(m, mr->x, mr->y, &mr->lm, &mr->init);
   if (!rc) {
     sm_error err;
-    if (sm_match(mr->x, mr->y, &m->mo, &mr->r, &err)) rc = fail("match", &err);
+    progress("%s", "matching ...");
+    int mrc = sm_match(mr->x, mr->y, &m->mo, &mr->r, &err);
+    progress("%s", "");
+    if (mrc) rc = fail("match", &err);
   }
   mr->t_total = sm_now() - t0;
   return rc;
@@ -419,6 +449,7 @@ static int cmd_match(int argc, char **argv) {
       rc = write_map(m.out_yx, back, y->mesh->n_input);
       free(back);
     }
+    if (!rc && m.out_fmap) rc = write_fmap(m.out_fmap, mr.r.C, mr.r.kC);
     if (!rc && m.json) print_match_json(&m, x, y, &mr.r, mr.t_total);
     else if (!rc)
       fprintf(stderr, "matched %d -> %d vertices in %.2f s (bases %.2f, init %.2f, refine %.2f); "
