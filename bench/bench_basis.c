@@ -6,6 +6,7 @@
  * Usage: bench_basis [-r reps] [-k k] [--eta e] [mesh ...]   (default: homerA, headA, koala)
  */
 #define _DEFAULT_SOURCE /* wait4: per-child peak memory */
+#include <cblas.h> /* OpenBLAS: openblas_set_num_threads */
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -109,6 +110,9 @@ static void bench(const char *path, int kind, int k, double eta, int reps) {
 }
 
 int main(int argc, char **argv) {
+  /* One BLAS thread, as in the shapematch CLI (see its main for the measurements), unless
+   * OPENBLAS_NUM_THREADS is set: the children inherit the setting. */
+  if (!getenv("OPENBLAS_NUM_THREADS")) openblas_set_num_threads(1);
   int reps = 5, k = 100;
   double eta = 0;
   const char *meshes[32];

@@ -10,6 +10,7 @@
  *   eval   A B --map MAP.txt [--gt GT --gt-kind K ...]        metrics of a point map
  * Exit status: 0 success, 1 failure (message on stderr), 2 usage error.
  */
+#include <cblas.h> /* OpenBLAS: openblas_set_num_threads */
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -610,6 +611,13 @@ static int cmd_synth(int argc, char **argv) {
 }
 
 int main(int argc, char **argv) {
+  /* One BLAS thread unless OPENBLAS_NUM_THREADS says otherwise: our BLAS calls are small
+   * (ARPACK's dgemv over n x ncv, per-supernode solves) and OpenBLAS threading costs more
+   * than it gains on them. Measured on homerA k=100, 2 cores, load ~4: elastic eigensolve
+   * 3.3-4.8 s CPU (5.0-7.0 s wall) with the default threads vs 2.05-2.15 s CPU (3.1-3.5 s
+   * wall) with one; LB 0.34 s CPU / 0.72 s wall (median) vs 0.25 s / 0.48 s. Set here,
+   * not in core/, because it is process-wide state. */
+  if (!getenv("OPENBLAS_NUM_THREADS")) openblas_set_num_threads(1);
   if (argc < 2) return usage(stderr);
   const char *cmd = argv[1];
   if (!strcmp(cmd, "basis")) return cmd_basis(argc - 2, argv + 2);
