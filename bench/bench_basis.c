@@ -2,7 +2,9 @@
  *
  * For each mesh and basis kind, runs the whole pipeline (read, clean, normalize, basis)
  * `reps` times, each in a forked child so that its peak resident memory (ru_maxrss of that
- * child alone) is measured, and prints the median of every timing column.
+ * child alone) is measured, and prints the median of every timing column. `cpu` is the
+ * child's user + system time (getrusage via wait4): on a shared machine it moves less
+ * with the load than the wall times do; the load average is printed before and after.
  * Usage: bench_basis [-r reps] [-k k] [--eta e] [mesh ...]   (default: homerA, headA, koala)
  */
 #define _DEFAULT_SOURCE /* wait4: per-child peak memory */
@@ -21,6 +23,7 @@
 typedef struct sample {
   double load, clean, assembly, factor, eigs, project, total;
   int solves, n, k, n_kernel;
+  double cpu; /* child's user + system seconds, whole run */
   long maxrss_kb;
   int ok;
 } sample;
@@ -73,6 +76,8 @@ static int run_forked(const char *path, int kind, int k, double eta, sample *s) 
   struct rusage ru;
   if (wait4(pid, &status, 0, &ru) < 0 || r != (ssize_t)sizeof *s) return 1;
   s->maxrss_kb = ru.ru_maxrss;
+  s->cpu = (double)ru.ru_utime.tv_sec + 1e-6 * (double)ru.ru_utime.tv_usec +
+           (double)ru.ru_stime.tv_sec + 1e-6 * (double)ru.ru_stime.tv_usec;
   return !s->ok;
 }
 
@@ -100,13 +105,21 @@ static void bench(const char *path, int kind, int k, double eta, int reps) {
   }
   long rss = 0;
   for (int i = 0; i < n; i++) rss = s[i].maxrss_kb > rss ? s[i].maxrss_kb : rss;
-  printf("%-26s %-7s %7d %4d %3d %3d  %6.3f %6.3f %6.3f %6.3f %7.3f %6.3f  %7.3f %6d %8.1f\n",
+  printf("%-26s %-7s %7d %4d %3d %3d  %6.3f %6.3f %6.3f %6.3f %7.3f %6.3f  %7.3f %7.3f %6d %8.1f\n",
          name, kind == SM_BASIS_LB ? "lb" : "elastic", s[0].n, s[0].k, s[0].n_kernel, n,
          median_of(s, n, offsetof(sample, load)), median_of(s, n, offsetof(sample, clean)),
          median_of(s, n, offsetof(sample, assembly)), median_of(s, n, offsetof(sample, factor)),
          median_of(s, n, offsetof(sample, eigs)), median_of(s, n, offsetof(sample, project)),
-         median_of(s, n, offsetof(sample, total)), s[0].solves, rss / 1024.0);
+         median_of(s, n, offsetof(sample, total)), median_of(s, n, offsetof(sample, cpu)),
+         s[0].solves, rss / 1024.0);
   fflush(stdout);
+}
+
+/* The machine may be shared: the load average says how much the wall times are inflated. */
+static void print_load(const char *when) {
+  double la[3];
+  if (getloadavg(la, 3) == 3)
+    printf("load average %s: %.2f %.2f %.2f\n", when, la[0], la[1], la[2]);
 }
 
 int main(int argc, char **argv) {
@@ -129,12 +142,14 @@ int main(int argc, char **argv) {
     meshes[nm++] = SM_DATA_DIR "/koala_50k_odedstein/koala.obj.gz";
   }
   printf("median of %d runs, seconds; peak RSS = max over runs of the child's ru_maxrss\n", reps);
-  printf("%-26s %-7s %7s %4s %3s %3s  %6s %6s %6s %6s %7s %6s  %7s %6s %8s\n", "mesh", "basis",
-         "verts", "k", "ker", "ok", "load", "clean", "assem", "factor", "eigs", "proj",
-         "total", "solves", "peakMB");
+  print_load("before");
+  printf("%-26s %-7s %7s %4s %3s %3s  %6s %6s %6s %6s %7s %6s  %7s %7s %6s %8s\n", "mesh",
+         "basis", "verts", "k", "ker", "ok", "load", "clean", "assem", "factor", "eigs", "proj",
+         "total", "cpu", "solves", "peakMB");
   for (int i = 0; i < nm; i++) {
     bench(meshes[i], SM_BASIS_LB, k, eta, reps);
     bench(meshes[i], SM_BASIS_ELASTIC, k, eta, reps);
   }
+  print_load("after");
   return 0;
 }
