@@ -7,7 +7,8 @@
  *     spectral embeddings) -> ZoomOut refinement in the lb, elastic or hybrid basis ->
  *     point map X -> Y (and Y -> X), final functional map, orientation score.
  *   multi-start (default on): the refinement is also run from the other initial map (nn
- *     if sinkhorn, and vice versa) and the map with the lower Dirichlet energy wins. ZoomOut
+ *     if sinkhorn, and vice versa; on a second thread) and the map with the lower Dirichlet
+ *     energy wins. ZoomOut
  *     converges to a local optimum; a start that lands a limb on its symmetric twin ends
  *     with a seam where the map jumps, which the Dirichlet energy sees (homer A -> B:
  *     6.8 for the right map, 59-77 for maps with a swapped limb; no ground truth used).
