@@ -615,8 +615,10 @@ int main(int argc, char **argv) {
    * (ARPACK's dgemv over n x ncv, per-supernode solves) and OpenBLAS threading costs more
    * than it gains on them. Measured on homerA k=100, 2 cores, load ~4: elastic eigensolve
    * 3.3-4.8 s CPU (5.0-7.0 s wall) with the default threads vs 2.05-2.15 s CPU (3.1-3.5 s
-   * wall) with one; LB 0.34 s CPU / 0.72 s wall (median) vs 0.25 s / 0.48 s. Set here,
-   * not in core/, because it is process-wide state. */
+   * wall) with one; LB 0.34 s CPU / 0.72 s wall (median) vs 0.25 s / 0.48 s. On an idle
+   * machine (load < 0.5) two threads win instead: elastic 1.76 s wall / 3.4 s CPU vs
+   * 2.44 s / 2.44 s; at load ~1 it is a draw. Shared machines are the common case here;
+   * OPENBLAS_NUM_THREADS=2 opts back in. Set here, not in core/: process-wide state. */
   if (!getenv("OPENBLAS_NUM_THREADS")) openblas_set_num_threads(1);
   if (argc < 2) return usage(stderr);
   const char *cmd = argv[1];
