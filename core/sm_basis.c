@@ -16,6 +16,9 @@
 /* A relative shift: small against the spectrum (which scales like tr(A)/tr(D)) so that the
  * wanted eigenvalues converge fast, large enough to keep K = A - sigma D well conditioned
  * despite A's kernel. */
+/* Measured on homerA elastic k = 100: 1e-6, 1e-5 and 1e-4 all take 283 solves; 1e-3
+ * takes 340 and 1e-2 775 (the shift moves close to the wanted eigenvalues and compresses
+ * the operator's spectrum). */
 #define SM_SHIFT_REL 1e-6
 /* Extra eigenpairs computed beyond k + the expected kernel, so that the kernel gap can be
  * seen and a few unexpected zero modes do not eat into k. */
