@@ -43,7 +43,8 @@ static int usage(FILE *f) {
           "        order, so any two correspond by identity)\n"
           "  match A B [--basis elastic|lb|hybrid] [--init sinkhorn|nn] [-k K1] [--k0 K0]\n"
           "        [--step S] [--eta E] [--landmarks FILE] [--init-map FILE] [-o MAP.txt]\n"
-          "        [--yx MAP_BA.txt] [--fmap C.txt] [--single-start] [--json]\n"
+          "        [--refine-sinkhorn LEVELS] [--yx MAP_BA.txt] [--fmap C.txt] [--single-start]\n"
+          "        [--json]\n"
           "        dense point map from A to B: line i of MAP.txt = vertex of B (0-based, B's\n"
           "        numbering) matched to vertex i of A; -1 for vertices cleaning dropped.\n"
           "        Landmarks: lines 'a b' of 0-based vertex pairs.\n"
@@ -289,6 +290,7 @@ static int parse_match_args(int argc, char **argv, match_args *m) {
     } else if (!strcmp(a, "-k")) m->mo.k1 = atoi(v);
     else if (!strcmp(a, "--k0")) m->mo.k0 = atoi(v);
     else if (!strcmp(a, "--step")) m->mo.step = atoi(v);
+    else if (!strcmp(a, "--refine-sinkhorn")) m->mo.sinkhorn_levels = atoi(v);
     else if (!strcmp(a, "--eta")) m->so.eta = atof(v);
     else if (!strcmp(a, "--landmarks")) m->landmarks = v;
     else if (!strcmp(a, "--init-map")) m->init_map = v;

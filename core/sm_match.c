@@ -1,6 +1,7 @@
 #include "sm_match.h"
 
 #include <cblas.h>
+#include <lapacke.h>
 #include <pthread.h>
 #include <math.h>
 #include <stdlib.h>
@@ -122,6 +123,10 @@ void sm_match_opts_default(sm_match_opts *o) {
   o->samples = 2000;
   o->orientation_fix = 1;
   o->multi_start = 1;
+  /* Two soft (Sinkhorn-plan) steps before the hard ZoomOut: measured with one sinkhorn
+   * start, homer 0.0623 -> 0.0238 and lion -> cat 0.0448 -> 0.0360 mean geodesic error
+   * (the soft steps keep a limb from locking onto its symmetric twin). */
+  o->sinkhorn_levels = 2;
 }
 
 void sm_match_result_free(sm_match_result *r) {
@@ -223,34 +228,70 @@ static int coarse_map(const sm_shape *x, const sm_shape *y, const sm_match_opts 
  * point map. Measured on homer A -> B (elastic refinement after it): 0.025 mean geodesic
  * error, against 0.13-0.18 when the plan was first turned into a hard map (row argmax or
  * greedy bijective extraction), whose scattered mistakes ZoomOut could not undo. */
-static int soft_pullback_map(const sm_shape *x, const sm_shape *y, const sm_plan *plan, int k,
-                             int32_t *T, sm_error *err) {
-  int32_t nx = x->mesh->nv, ny = y->mesh->nv;
-  double *PY = calloc((size_t)nx * k, sizeof *PY), *C = malloc((size_t)k * k * sizeof *C);
-  if (!PY || !C) {
-    free(PY);
-    free(C);
-    return sm_error_set(err, SM_ENOMEM, "init: out of memory");
-  }
+/* C (k x k) of the soft correspondence: C = A^-1 Phi^T M_X P~ Psi with P~ the plan with
+ * rows normalized to 1 and A = Phi^T M_X Phi (identity for the LB basis; otherwise solved
+ * with the leading k-block of the Gram factor). */
+static int soft_fmap(const sm_basis *bx, const sm_basis *by, const sm_plan *plan, int k,
+                     double *C, sm_error *err) {
+  int32_t nx = bx->n, ny = by->n;
+  double *PY = calloc((size_t)nx * k, sizeof *PY);
+  if (!PY) return sm_error_set(err, SM_ENOMEM, "soft map: out of memory");
   for (int32_t i = 0; i < nx; i++) {
     double rs = 0;
     for (int64_t p = plan->rowptr[i]; p < plan->rowptr[i + 1]; p++) rs += plan->val[p];
     if (!(rs > 0)) continue;
     /* The mass of the weighting M_X is folded in here: row i carries m_i / rs. */
-    double w = x->lb->mass[i] / rs;
+    double w = bx->mass[i] / rs;
     for (int64_t p = plan->rowptr[i]; p < plan->rowptr[i + 1]; p++) {
       double c = w * plan->val[p];
-      const double *psi = y->lb->phi + plan->col[p];
+      const double *psi = by->phi + plan->col[p];
       for (int j = 0; j < k; j++) PY[(size_t)j * nx + i] += c * psi[(size_t)j * ny];
     }
   }
-  cblas_dgemm(CblasColMajor, CblasTrans, CblasNoTrans, k, k, nx, 1.0, x->lb->phi, nx, PY, nx,
-              0.0, C, k);
+  cblas_dgemm(CblasColMajor, CblasTrans, CblasNoTrans, k, k, nx, 1.0, bx->phi, nx, PY, nx, 0.0,
+              C, k);
+  free(PY);
+  if (bx->gram_L &&
+      LAPACKE_dpotrs(LAPACK_COL_MAJOR, 'L', k, k, bx->gram_L, bx->k, C, k) != 0)
+    return sm_error_set(err, SM_ENUMERIC, "soft map: Gram solve failed at k = %d", k);
+  return SM_OK;
+}
+
+/* The functional map of a soft correspondence (soft_fmap), then its point map. Measured on
+ * homer A -> B (elastic refinement after it): 0.025 mean geodesic error, against 0.13-0.18
+ * when the plan was first turned into a hard map (row argmax or greedy bijective
+ * extraction), whose scattered mistakes ZoomOut could not undo. */
+static int soft_pullback_map(const sm_shape *x, const sm_shape *y, const sm_plan *plan, int k,
+                             int32_t *T, sm_error *err) {
+  double *C = malloc((size_t)k * k * sizeof *C);
+  if (!C) return sm_error_set(err, SM_ENOMEM, "init: out of memory");
+  int rc = soft_fmap(x->lb, y->lb, plan, k, C, err);
   sm_fmap_pair pair = {x->lb, y->lb, k, k, 1.0};
   const double *Cs[1] = {C};
-  int rc = sm_fmap_to_p2p(&pair, 1, Cs, T, NULL, NULL, err);
-  free(PY);
+  if (!rc) rc = sm_fmap_to_p2p(&pair, 1, Cs, T, NULL, NULL, err);
   free(C);
+  return rc;
+}
+
+/* Entropic transport between the spectral embeddings of x (k columns of bx) and of y
+ * carried by C; masses = vertex areas. */
+static int embed_sinkhorn(const sm_basis *bx, const sm_basis *by, int k, const double *C,
+                          const sm_match_opts *o, sm_plan **plan, sm_error *err) {
+  int32_t nx = bx->n, ny = by->n;
+  double *Ex = malloc((size_t)nx * k * sizeof *Ex), *Ey = malloc((size_t)ny * k * sizeof *Ey);
+  int rc = (!Ex || !Ey) ? sm_error_set(err, SM_ENOMEM, "sinkhorn: out of memory") : SM_OK;
+  if (!rc) rc = sm_fmap_embed_x(bx, k, Ex, k, err);
+  if (!rc) rc = sm_fmap_embed_y(bx, by, k, C, Ey, k, err);
+  if (!rc) {
+    sm_sinkhorn_opts so;
+    sm_sinkhorn_opts_default(&so);
+    so.k = o->sinkhorn_k;
+    so.cancel = o->cancel;
+    so.cancel_ud = o->cancel_ud;
+    rc = sm_sinkhorn(Ex, nx, Ey, ny, k, bx->mass, by->mass, &so, plan, NULL, err);
+  }
+  free(Ex);
+  free(Ey);
   return rc;
 }
 
@@ -265,24 +306,37 @@ static int initial_map(const sm_shape *x, const sm_shape *y, const sm_match_opts
     const double *Cs[1] = {C};
     return sm_fmap_to_p2p(&p, 1, Cs, T, NULL, NULL, err);
   }
-  int32_t nx = x->mesh->nv, ny = y->mesh->nv;
-  double *Ex = malloc((size_t)nx * k * sizeof *Ex), *Ey = malloc((size_t)ny * k * sizeof *Ey);
   sm_plan *plan = NULL;
-  int rc = (!Ex || !Ey) ? sm_error_set(err, SM_ENOMEM, "init: out of memory") : SM_OK;
-  if (!rc) rc = sm_fmap_embed_x(x->lb, k, Ex, k, err);
-  if (!rc) rc = sm_fmap_embed_y(x->lb, y->lb, k, C, Ey, k, err);
-  if (!rc) {
-    sm_sinkhorn_opts so;
-    sm_sinkhorn_opts_default(&so);
-    so.k = o->sinkhorn_k;
-    so.cancel = o->cancel;
-    so.cancel_ud = o->cancel_ud;
-    rc = sm_sinkhorn(Ex, nx, Ey, ny, k, x->lb->mass, y->lb->mass, &so, &plan, NULL, err);
-  }
+  int rc = embed_sinkhorn(x->lb, y->lb, k, C, o, &plan, err);
   if (!rc) rc = soft_pullback_map(x, y, plan, k, T, err);
   sm_plan_destroy(plan);
-  free(Ex);
-  free(Ey);
+  return rc;
+}
+
+/* The Sinkhorn refinement variant: the first o->sinkhorn_levels steps of the schedule use
+ * the sparse transport plan (as a soft correspondence) instead of hard nearest neighbours
+ * to carry C from one k to the next; ZoomOut then continues from the resulting map. Runs in
+ * the refinement basis (the elastic one for hybrid). */
+static int sinkhorn_levels(const sm_shape *x, const sm_shape *y, const sm_match_opts *o,
+                           int32_t *T, sm_error *err) {
+  const sm_basis *bx = o->basis == SM_MATCH_LB ? x->lb : x->elastic;
+  const sm_basis *by = o->basis == SM_MATCH_LB ? y->lb : y->elastic;
+  int L = o->sinkhorn_levels, k = o->k0;
+  double *C = malloc((size_t)o->k1 * o->k1 * sizeof *C);
+  if (!C) return sm_error_set(err, SM_ENOMEM, "sinkhorn refinement: out of memory");
+  int rc = sm_fmap_from_p2p(bx, by, k, T, C, err);
+  for (int l = 0; !rc && l < L; l++) {
+    int kn = o->k0 + (o->k1 - o->k0) * (l + 1) / L;
+    sm_plan *plan = NULL;
+    rc = embed_sinkhorn(bx, by, k, C, o, &plan, err);
+    if (!rc) rc = soft_fmap(bx, by, plan, kn, C, err);
+    sm_plan_destroy(plan);
+    k = kn;
+  }
+  sm_fmap_pair pair = {bx, by, k, k, 1.0};
+  const double *Cs[1] = {C};
+  if (!rc) rc = sm_fmap_to_p2p(&pair, 1, Cs, T, NULL, NULL, err);
+  free(C);
   return rc;
 }
 
@@ -324,6 +378,7 @@ static int attempt(const sm_shape *x, const sm_shape *y, const sm_match_opts *o,
   }
   if (!rc) r->init_distinct = sm_plan_map_distinct(r->T, r->nx, r->ny);
   double t1 = sm_now();
+  if (!rc && o->sinkhorn_levels > 0) rc = sinkhorn_levels(x, y, o, r->T, err);
   if (!rc) rc = refine(x, y, o, r->T, r->C, r->T_yx, err);
   r->t_init += t1 - t0;
   r->t_refine += sm_now() - t1;

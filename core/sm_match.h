@@ -68,6 +68,8 @@ typedef struct sm_match_opts {
   int k0, k1, step; /* refinement schedule */
   int coarse_k;     /* LB functions of the coarse map */
   int sinkhorn_k;   /* sparse kernel: neighbours per point and direction */
+  int sinkhorn_levels; /* refinement variant: this many k-steps carried by the Sinkhorn
+                          plan (soft) before the hard ZoomOut; 0 = off (default 2) */
   int samples;      /* farthest-point samples for intermediate refinement iterations */
   int orientation_fix; /* try the other orientation when the result looks mirrored */
   int multi_start;  /* also refine from the other init, keep the smoother map (see below) */
