@@ -792,6 +792,12 @@ static void test_bad_headers(void) {
   uint8_t x[24];
 
   CHECK(parse_hdr24(good, LIMIT) == 24);
+  /* the golden frame of PROTOCOL.md section 9 */
+  static const uint8_t golden[32] = {0x89, 0x53, 0x4d, 0x50, 0x01, 0x02, 0x00, 0x00,
+                                     0x09, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00,
+                                     0x08, 0x00, 0x00, 0x00, 0x79, 0x1d, 0xd9, 0xed,
+                                     0x05, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00};
+  CHECK(memcmp(good, golden, 32) == 0);
   /* bad magic: each byte; the first is rejected from a 1-byte prefix */
   for (int i = 0; i < 4; i++) {
     memcpy(x, good, 24);
