@@ -578,6 +578,8 @@ static int match_req_ok(uint8_t opcode, const sm_proto_match_req *m) {
   if (opcode != SM_OP_MATCH && opcode != SM_OP_DISTANCE) return 0;
   if (m->basis > 3 || m->init > 2 || (m->flags & ~known) || !eta_ok(m->eta)) return 0;
   if (m->k0 && m->k1 && m->k0 > m->k1) return 0;
+  if ((m->flags & SM_MATCH_F_SINGLE_START) && (m->flags & SM_MATCH_F_MULTI_START)) return 0;
+  if (!(m->flags & SM_MATCH_F_SINKHORN_LEVELS) && m->sinkhorn_levels) return 0;
   if (m->landmarks.count % 2) return 0;
   if ((m->landmarks.count && !m->landmarks.v && !m->landmarks.le) ||
       (m->init_map.count && !m->init_map.v && !m->init_map.le))
@@ -596,7 +598,7 @@ ptrdiff_t sm_proto_enc_match_req(uint8_t *buf, size_t cap, const sm_proto_header
   w_u16(&w, m->k0);
   w_u16(&w, m->k1);
   w_u16(&w, m->step);
-  w_u16(&w, 0);
+  w_u16(&w, m->sinkhorn_levels);
   w_u32(&w, m->landmarks.count / 2);
   w_f64(&w, m->eta);
   w_u32(&w, m->deadline_ms);
@@ -616,6 +618,7 @@ int sm_proto_dec_match_req(uint8_t opcode, const uint8_t *p, size_t n, sm_proto_
   m->k0 = ld16(p + 68);
   m->k1 = ld16(p + 70);
   m->step = ld16(p + 72);
+  m->sinkhorn_levels = ld16(p + 74);
   uint32_t nl = ld32(p + 76);
   m->eta = ldf64(p + 80);
   m->deadline_ms = ld32(p + 88);
@@ -623,7 +626,7 @@ int sm_proto_dec_match_req(uint8_t opcode, const uint8_t *p, size_t n, sm_proto_
   if ((uint64_t)n != 96 + 8 * (uint64_t)nl + 4 * (uint64_t)ni) return SM_PROTO_ELENGTH;
   m->landmarks = (sm_proto_i32s){NULL, p + 96, 2 * nl}; /* 2*nl*4 <= n: no overflow */
   m->init_map = (sm_proto_i32s){NULL, p + 96 + 8 * (size_t)nl, ni};
-  if (ld16(p + 74) != 0 || !match_req_ok(opcode, m)) return SM_PROTO_EFIELD;
+  if (!match_req_ok(opcode, m)) return SM_PROTO_EFIELD;
   return 0;
 }
 

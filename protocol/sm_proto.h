@@ -241,19 +241,26 @@ typedef struct sm_proto_prepare_resp {
 
 /* MATCH and DISTANCE requests share one layout. basis/init: 0 = server default, else the
  * values of core/sm_match.h (lb 1, elastic 2, hybrid 3; nn 1, sinkhorn 2). */
+/* SINGLE_START / MULTI_START force multi-start off / on (neither: server default; both:
+ * invalid). SINKHORN_LEVELS: sinkhorn_levels is given (0 = variant off); without it the
+ * field must be 0 and the server default applies. */
 enum {
   SM_MATCH_F_WANT_YX = 1u << 0,
   SM_MATCH_F_WANT_FMAP = 1u << 1,
   SM_MATCH_F_SINGLE_START = 1u << 2,
   SM_MATCH_F_WANT_DISTANCE = 1u << 3,
-  SM_MATCH_F_KNOWN_ = 0xFu,
-  SM_DISTANCE_F_KNOWN_ = SM_MATCH_F_SINGLE_START
+  SM_MATCH_F_MULTI_START = 1u << 4,
+  SM_MATCH_F_SINKHORN_LEVELS = 1u << 5,
+  SM_MATCH_F_KNOWN_ = 0x3Fu,
+  SM_DISTANCE_F_KNOWN_ =
+      SM_MATCH_F_SINGLE_START | SM_MATCH_F_MULTI_START | SM_MATCH_F_SINKHORN_LEVELS
 };
 typedef struct sm_proto_match_req {
   uint8_t x[SM_PROTO_ID_LEN], y[SM_PROTO_ID_LEN];
   uint8_t basis, init;
   uint16_t flags;
   uint16_t k0, k1, step;  /* 0 = default */
+  uint16_t sinkhorn_levels; /* Sinkhorn refinement steps (CLI --refine-sinkhorn), see flags */
   double eta;             /* 0 = default, else finite > 0 */
   uint32_t deadline_ms;   /* 0 = none */
   sm_proto_i32s landmarks; /* 2 * n pairs (x, y), input vertex numbering; count even */

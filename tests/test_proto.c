@@ -193,8 +193,10 @@ static sm_proto_match_req m_match_req(int distance) {
   memcpy(m.y, ID_B, 32);
   m.basis = 3;
   m.init = 1;
-  m.flags = distance ? SM_MATCH_F_SINGLE_START
-                     : SM_MATCH_F_WANT_YX | SM_MATCH_F_WANT_FMAP | SM_MATCH_F_WANT_DISTANCE;
+  m.flags = distance ? SM_MATCH_F_MULTI_START | SM_MATCH_F_SINKHORN_LEVELS
+                     : SM_MATCH_F_WANT_YX | SM_MATCH_F_WANT_FMAP | SM_MATCH_F_WANT_DISTANCE |
+                           SM_MATCH_F_SINGLE_START;
+  m.sinkhorn_levels = distance ? 3 : 0;
   m.k0 = 20;
   m.k1 = 100;
   m.step = 5;
@@ -428,6 +430,7 @@ static void eq_i32s(int k, const char *what, const sm_proto_i32s *a, const sm_pr
 }
 static void eq_match_req(int k, const sm_proto_match_req *a, const sm_proto_match_req *b) {
   EQMEM(x, 32); EQMEM(y, 32); EQ(basis); EQ(init); EQ(flags); EQ(k0); EQ(k1); EQ(step);
+  EQ(sinkhorn_levels);
   EQ(eta); EQ(deadline_ms);
   eq_i32s(k, "landmarks", &a->landmarks, &b->landmarks);
   eq_i32s(k, "init_map", &a->init_map, &b->init_map);
@@ -1007,8 +1010,11 @@ static void test_bad_payloads(void) {
   /* out-of-range enums, unknown flag bits, reserved fields */
   MUT(K_MATCH_REQ, b[64] = 4, SM_PROTO_EFIELD);  /* basis */
   MUT(K_MATCH_REQ, b[65] = 3, SM_PROTO_EFIELD);  /* init */
-  MUT(K_MATCH_REQ, put16(b + 66, 0x10), SM_PROTO_EFIELD);
-  MUT(K_MATCH_REQ, put16(b + 74, 1), SM_PROTO_EFIELD);
+  MUT(K_MATCH_REQ, put16(b + 74, 1), SM_PROTO_EFIELD); /* levels without its flag */
+  MUT(K_MATCH_REQ, put16(b + 66, SM_MATCH_F_SINGLE_START | SM_MATCH_F_MULTI_START),
+      SM_PROTO_EFIELD);
+  MUT(K_MATCH_REQ, put16(b + 66, 0x40), SM_PROTO_EFIELD);
+  MUT(K_DIST_REQ, put16(b + 74, 0), 0); /* levels 0 = variant off: valid */
   MUT(K_MATCH_REQ, (put16(b + 68, 50), put16(b + 70, 20)), SM_PROTO_EFIELD); /* k0 > k1 */
   MUT(K_MATCH_REQ, for (int i = 0; i < 8; i++) b[80 + i] = (uint8_t)(nanbits >> (8 * i)),
       SM_PROTO_EFIELD);
