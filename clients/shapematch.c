@@ -43,7 +43,7 @@ static int usage(FILE *f) {
           "        order, so any two correspond by identity)\n"
           "  match A B [--basis elastic|lb|hybrid] [--init sinkhorn|nn] [-k K1] [--k0 K0]\n"
           "        [--step S] [--eta E] [--landmarks FILE] [--init-map FILE] [-o MAP.txt]\n"
-          "        [--refine-sinkhorn LEVELS] [--yx MAP_BA.txt] [--fmap C.txt] [--single-start]\n"
+          "        [--refine-sinkhorn LEVELS] [--yx MAP_BA.txt] [--fmap C.txt] [--multi-start]\n"
           "        [--json]\n"
           "        dense point map from A to B: line i of MAP.txt = vertex of B (0-based, B's\n"
           "        numbering) matched to vertex i of A; -1 for vertices cleaning dropped.\n"
@@ -271,7 +271,7 @@ static int parse_match_args(int argc, char **argv, match_args *m) {
   for (int i = 0; i < argc; i++) {
     const char *a = argv[i], *v = i + 1 < argc ? argv[i + 1] : NULL;
     if (!strcmp(a, "--json")) { m->json = 1; continue; }
-    if (!strcmp(a, "--single-start")) { m->mo.multi_start = 0; continue; }
+    if (!strcmp(a, "--multi-start")) { m->mo.multi_start = 1; continue; }
     if (a[0] != '-') {
       if (!m->a) m->a = a;
       else if (!m->b) m->b = a;

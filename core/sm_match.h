@@ -6,7 +6,7 @@
  *     -> initial point map (nearest neighbour, or sparse Sinkhorn, between the aligned
  *     spectral embeddings) -> ZoomOut refinement in the lb, elastic or hybrid basis ->
  *     point map X -> Y (and Y -> X), final functional map, orientation score.
- *   multi-start (default on): the refinement is also run from the other initial map (nn
+ *   multi-start (option, off by default): the refinement is also run from the other initial map (nn
  *     if sinkhorn, and vice versa; on a second thread) and the map with the lower Dirichlet
  *     energy wins. ZoomOut
  *     converges to a local optimum; a start that lands a limb on its symmetric twin ends

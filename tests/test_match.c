@@ -229,15 +229,17 @@ int main(int argc, char **argv) {
     for (int i = 0; i < 2; i++) self_match_case(bases[b], inits[i]);
   test_mirror();
   test_distance_properties();
+  /* Bounds: the mean geodesic errors bench_match measured with the default pipeline
+   * (homer 0.0238, head 0.0107, lion -> cat 0.0360, man -> woman 0.0022) plus ~20%. */
   const real_pair pairs[] = {
       {"homer", "elasticbasis_cartoon_pairs/homerA.obj", "elasticbasis_cartoon_pairs/homerB.obj",
-       "elasticbasis_cartoon_pairs/gt_homerA_homerB.txt", 0.035},
+       "elasticbasis_cartoon_pairs/gt_homerA_homerB.txt", 0.029},
       {"head", "elasticbasis_cartoon_pairs/headA.obj", "elasticbasis_cartoon_pairs/headB.obj",
-       "elasticbasis_cartoon_pairs/gt_headA_headB.txt", 0.035},
+       "elasticbasis_cartoon_pairs/gt_headA_headB.txt", 0.013},
       {"lion-cat", "pyfm_cat_lion/lion-00.off", "pyfm_cat_lion/cat-00.off", "pyfm_cat_lion/lion2cat",
-       0.08},
+       0.044},
       {"man-woman", "smpl_man_woman_odedstein/human_man.obj",
-       "smpl_man_woman_odedstein/human_woman.obj", NULL, 0.035},
+       "smpl_man_woman_odedstein/human_woman.obj", NULL, 0.005},
   };
   /* The sanitizer pass sets SM_TEST_SYNTHETIC_ONLY: the real pairs are numerics already
    * covered by the optimized pass, and ten times slower under ASan. */
