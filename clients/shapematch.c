@@ -8,12 +8,21 @@
  *   match  A B [options] [-o MAP.txt] [--json]                point map A -> B (local)
  *   distance A B [options] [--json]                           shape distance (local)
  *   eval   A B --map MAP.txt [--gt GT --gt-kind K ...]        metrics of a point map
+ * With a daemon (--server HOST:PORT or $SHAPEMATCH_SERVER; sm_client.h):
+ *   put FILE... | match A B | distance A B | query A | batch ... | stats | ping
+ *   match and distance run on the server when one is named, locally otherwise or with
+ *   --local. A and B are mesh files (Draco-encoded on the fly, order kept, so maps speak
+ *   of the file's own vertex numbering) or the 64-hex ids of stored shapes.
  * Exit status: 0 success, 1 failure (message on stderr), 2 usage error.
  */
 #include <cblas.h> /* OpenBLAS: openblas_set_num_threads */
+#include <dirent.h>
+#include <errno.h>
+#include <signal.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include "sm_basis.h"
@@ -24,6 +33,7 @@
 #include "sm_match.h"
 #include "sm_distance.h"
 #include "sm_metrics.h"
+#include "sm_client.h"
 
 #define SM_VERSION "0.1.0"
 
@@ -54,7 +64,26 @@ static int usage(FILE *f) {
           "        [--gt-tgt FILE] [--gt-base 0|1] [--json]\n"
           "        geodesic error (Dijkstra on B's edges / sqrt(area B)), accuracy curve,\n"
           "        bijectivity, coverage, Chamfer and Dirichlet energy of a map A -> B\n"
-          "  version\n",
+          "  version\n"
+          "\n"
+          "server commands (--server HOST:PORT, or $SHAPEMATCH_SERVER; $SHAPEMATCH_TOKEN is\n"
+          "sent as the HELLO token). A and B are mesh files, uploaded as needed (any\n"
+          "readable format; Draco-encoded losslessly, vertex order kept, so maps use the\n"
+          "file's numbering), or the 64-hex ids of shapes already stored:\n"
+          "  put FILE... [--prepare]\n"
+          "        upload shapes; prints 'ID FILE' per shape (ID = SHA-256 of the Draco bytes)\n"
+          "  match A B [match options] --server ...    as above, computed by the daemon;\n"
+          "  distance A B [options] --server ...       --local forces the local computation\n"
+          "  query A [-k N] [--mode default|spectral|full] [--json]\n"
+          "        the N stored shapes most similar to A: lines 'DISTANCE ID'\n"
+          "  batch FILE | batch --query A --gallery DIR|LIST  [--inflight N] [--maps DIR]\n"
+          "        [match options]\n"
+          "        distances of the pairs 'A B' (one per line of FILE), or of A against every\n"
+          "        mesh of a directory or list file; N requests in flight (default 4); one\n"
+          "        JSON line per result on stdout as it arrives; --maps DIR also writes each\n"
+          "        map to DIR/INDEX.txt; exit status 1 when an item failed (listed on stderr)\n"
+          "  stats | ping\n"
+          "        the daemon's counters | round-trip time\n",
           SM_SHELL_DEFAULT_ETA);
   return 2;
 }
@@ -262,47 +291,75 @@ typedef struct match_args {
   int json;
   sm_shape_opts so;
   sm_match_opts mo;
+  sm_client_match_opts co; /* the same options for the daemon: only what the user set */
 } match_args;
 
-static int parse_match_args(int argc, char **argv, match_args *m) {
+static void match_args_init(match_args *m) {
   memset(m, 0, sizeof *m);
   sm_shape_opts_default(&m->so);
   sm_match_opts_default(&m->mo);
+  sm_client_match_opts_default(&m->co);
+}
+
+/* One option of match/distance/batch at argv[*i]: 1 consumed (and *i advanced past its
+ * value), 0 not a match option, -1 bad value or missing value. */
+static int parse_match_opt(int argc, char **argv, int *i, match_args *m) {
+  const char *a = argv[*i], *v = *i + 1 < argc ? argv[*i + 1] : NULL;
+  if (!strcmp(a, "--json")) { m->json = 1; return 1; }
+  if (!strcmp(a, "--multi-start")) { m->mo.multi_start = m->co.multi_start = 1; return 1; }
+  static const char *const valued[] = {"--basis", "--init", "-k", "--k0", "--step",
+                                       "--refine-sinkhorn", "--eta", "--landmarks",
+                                       "--init-map", "-o", "--yx", "--fmap", NULL};
+  int known = 0;
+  for (int j = 0; valued[j]; j++) known |= !strcmp(a, valued[j]);
+  if (!known) return 0;
+  if (!v) return -1;
+  (*i)++;
+  if (!strcmp(a, "--basis")) {
+    m->mo.basis = !strcmp(v, "lb") ? SM_MATCH_LB : !strcmp(v, "elastic") ? SM_MATCH_ELASTIC
+                : !strcmp(v, "hybrid") ? SM_MATCH_HYBRID : 0;
+    if (!m->mo.basis) return -1;
+    m->co.basis = m->mo.basis;
+  } else if (!strcmp(a, "--init")) {
+    m->mo.init = !strcmp(v, "nn") ? SM_INIT_NN : !strcmp(v, "sinkhorn") ? SM_INIT_SINKHORN : 0;
+    if (!m->mo.init) return -1;
+    m->co.init = m->mo.init;
+  } else if (!strcmp(a, "-k")) m->mo.k1 = m->co.k1 = atoi(v);
+  else if (!strcmp(a, "--k0")) m->mo.k0 = m->co.k0 = atoi(v);
+  else if (!strcmp(a, "--step")) m->mo.step = m->co.step = atoi(v);
+  else if (!strcmp(a, "--refine-sinkhorn")) m->mo.sinkhorn_levels = m->co.sinkhorn_levels = atoi(v);
+  else if (!strcmp(a, "--eta")) m->so.eta = m->co.eta = atof(v);
+  else if (!strcmp(a, "--landmarks")) m->landmarks = v;
+  else if (!strcmp(a, "--init-map")) m->init_map = v;
+  else if (!strcmp(a, "-o")) m->out = v;
+  else if (!strcmp(a, "--yx")) m->out_yx = v;
+  else if (!strcmp(a, "--fmap")) m->out_fmap = v;
+  return 1;
+}
+
+static void match_args_finish(match_args *m) {
+  if (m->mo.basis == SM_MATCH_LB) m->so.k_elastic = 0;
+  if (m->mo.k1 > m->so.k_lb) m->so.k_lb = m->mo.k1;
+  if (m->so.k_elastic && m->mo.k1 > m->so.k_elastic) m->so.k_elastic = m->mo.k1;
+}
+
+static int parse_match_args(int argc, char **argv, match_args *m) {
+  match_args_init(m);
   for (int i = 0; i < argc; i++) {
-    const char *a = argv[i], *v = i + 1 < argc ? argv[i + 1] : NULL;
-    if (!strcmp(a, "--json")) { m->json = 1; continue; }
-    if (!strcmp(a, "--multi-start")) { m->mo.multi_start = 1; continue; }
+    int r = parse_match_opt(argc, argv, &i, m);
+    if (r < 0) return -1;
+    if (r) continue;
+    const char *a = argv[i];
     if (a[0] != '-') {
       if (!m->a) m->a = a;
       else if (!m->b) m->b = a;
       else return -1;
       continue;
     }
-    if (!v) return -1;
-    i++;
-    if (!strcmp(a, "--basis")) {
-      m->mo.basis = !strcmp(v, "lb") ? SM_MATCH_LB : !strcmp(v, "elastic") ? SM_MATCH_ELASTIC
-                  : !strcmp(v, "hybrid") ? SM_MATCH_HYBRID : 0;
-      if (!m->mo.basis) return -1;
-    } else if (!strcmp(a, "--init")) {
-      m->mo.init = !strcmp(v, "nn") ? SM_INIT_NN : !strcmp(v, "sinkhorn") ? SM_INIT_SINKHORN : 0;
-      if (!m->mo.init) return -1;
-    } else if (!strcmp(a, "-k")) m->mo.k1 = atoi(v);
-    else if (!strcmp(a, "--k0")) m->mo.k0 = atoi(v);
-    else if (!strcmp(a, "--step")) m->mo.step = atoi(v);
-    else if (!strcmp(a, "--refine-sinkhorn")) m->mo.sinkhorn_levels = atoi(v);
-    else if (!strcmp(a, "--eta")) m->so.eta = atof(v);
-    else if (!strcmp(a, "--landmarks")) m->landmarks = v;
-    else if (!strcmp(a, "--init-map")) m->init_map = v;
-    else if (!strcmp(a, "-o")) m->out = v;
-    else if (!strcmp(a, "--yx")) m->out_yx = v;
-    else if (!strcmp(a, "--fmap")) m->out_fmap = v;
-    else return -1;
+    return -1;
   }
   if (!m->a || !m->b) return -1;
-  if (m->mo.basis == SM_MATCH_LB) m->so.k_elastic = 0;
-  if (m->mo.k1 > m->so.k_lb) m->so.k_lb = m->mo.k1;
-  if (m->so.k_elastic && m->mo.k1 > m->so.k_elastic) m->so.k_elastic = m->mo.k1;
+  match_args_finish(m);
   return 0;
 }
 
@@ -434,10 +491,658 @@ static int run_match(match_args *m, match_run *mr) {
   return rc;
 }
 
+/* ---- the daemon (sm_client) ---- */
+
+static volatile sig_atomic_t g_stop = 0;
+static void on_sigint(int sig) {
+  (void)sig;
+  g_stop = 1;
+}
+
+/* Removes "--server ADDR" and "--local" from argv (compacting it); falls back to
+ * $SHAPEMATCH_SERVER. *addr is NULL when no server is named or --local was given.
+ * Returns -1 when --server lacks its value. */
+static int take_server(int *argc, char **argv, const char **addr) {
+  int n = 0, local = 0;
+  const char *a = NULL;
+  for (int i = 0; i < *argc; i++) {
+    if (!strcmp(argv[i], "--server")) {
+      if (i + 1 >= *argc) return -1;
+      a = argv[++i];
+    } else if (!strcmp(argv[i], "--local")) local = 1;
+    else argv[n++] = argv[i];
+  }
+  *argc = n;
+  if (!a) a = getenv("SHAPEMATCH_SERVER");
+  if (a && !*a) a = NULL;
+  *addr = local ? NULL : a;
+  return 0;
+}
+
+static int client_fail(const char *what, const sm_client_error *e) {
+  fprintf(stderr, "shapematch: %s: %s\n", what, e->msg[0] ? e->msg : sm_client_strerror(e->code));
+  return 1;
+}
+
+/* Connects with the options every command shares; affinity: a shape id or NULL. */
+static int open_client(const char *addr, const uint8_t *affinity, sm_client **c) {
+  sm_client_opts o;
+  sm_client_error e;
+  sm_client_opts_default(&o);
+  const char *tok = getenv("SHAPEMATCH_TOKEN");
+  if (tok && *tok) {
+    o.token = (const uint8_t *)tok;
+    o.token_len = strlen(tok);
+  }
+  o.affinity = affinity;
+  o.stop = &g_stop;
+  signal(SIGINT, on_sigint);
+  if (sm_client_connect(addr, &o, c, &e)) return client_fail("connect", &e);
+  return 0;
+}
+
+/* A shape named on the command line: a mesh file, or the hex id of a stored shape. */
+typedef struct shape_ref {
+  const char *arg;
+  uint8_t id[SM_PROTO_ID_LEN];
+  uint8_t *draco; /* NULL for an id */
+  size_t len;
+  uint32_t nv;    /* input vertices, once known */
+  int state;      /* 0 not resolved, 1 ready, -1 failed */
+  sm_client_error err;
+} shape_ref;
+
+static int is_file(const char *p) {
+  struct stat st;
+  return stat(p, &st) == 0;
+}
+
+/* Computes the id (encoding the file when needed). Returns 0 or 1 (message in r->err). */
+static int ref_load(shape_ref *r, const char *arg) {
+  memset(r, 0, sizeof *r);
+  r->arg = arg;
+  if (!is_file(arg) && !sm_client_id_from_hex(arg, r->id)) return 0;
+  if (sm_client_file_draco(arg, &r->draco, &r->len, &r->err)) {
+    r->state = -1;
+    return 1;
+  }
+  sm_client_shape_id(r->draco, r->len, r->id);
+  return 0;
+}
+
+/* Makes sure the server has the shape (uploads it unless stored). 0 or 1. */
+static int ref_upload(sm_client *c, shape_ref *r, int prepare) {
+  if (r->state) return r->state < 0;
+  sm_proto_has_resp h;
+  sm_proto_put_resp p;
+  if (sm_client_has(c, r->id, &h, &r->err)) goto bad;
+  if (h.flags & SM_HAS_STORED) {
+    r->nv = h.n_vertices;
+    if (!prepare || (h.flags & SM_HAS_PREPARED)) {
+      r->state = 1;
+      return 0;
+    }
+  } else if (!r->draco) {
+    char hex[SM_CLIENT_ID_HEX_LEN + 1];
+    sm_client_id_to_hex(r->id, hex);
+    snprintf(r->err.msg, sizeof r->err.msg, "shape %s is not stored on the server", hex);
+    r->err.code = SM_CLIENT_ESTATUS;
+    r->err.status = SM_ST_NOT_FOUND;
+    goto bad;
+  }
+  if (r->draco) {
+    if (sm_client_put(c, r->draco, r->len, prepare, NULL, &p, &r->err)) goto bad;
+    r->nv = p.n_vertices;
+  } else if (sm_client_prepare(c, r->id, 0, 0, 0, NULL, &r->err)) goto bad;
+  r->state = 1;
+  return 0;
+bad:
+  r->state = -1;
+  return 1;
+}
+
+static void ref_free(shape_ref *r) {
+  free(r->draco);
+  r->draco = NULL;
+}
+
+static int cmd_put(int argc, char **argv, const char *addr) {
+  int prepare = 0, nfiles = 0, rc = 0;
+  for (int i = 0; i < argc; i++) {
+    if (!strcmp(argv[i], "--prepare")) prepare = 1;
+    else if (argv[i][0] == '-') return usage(stderr);
+    else nfiles++;
+  }
+  if (!nfiles) return usage(stderr);
+  sm_client *c;
+  if (open_client(addr, NULL, &c)) return 1;
+  for (int i = 0; i < argc; i++) {
+    if (argv[i][0] == '-') continue;
+    shape_ref r;
+    char hex[SM_CLIENT_ID_HEX_LEN + 1];
+    if (ref_load(&r, argv[i]) || ref_upload(c, &r, prepare)) {
+      rc = client_fail(argv[i], &r.err);
+      ref_free(&r);
+      if (!sm_client_is_open(c)) break;
+      continue;
+    }
+    sm_client_id_to_hex(r.id, hex);
+    printf("%s  %s\n", hex, argv[i]);
+    fflush(stdout);
+    ref_free(&r);
+  }
+  sm_client_close(c);
+  return rc;
+}
+
+/* Landmarks and the initial map travel in the files' own numbering: read them as they are. */
+static int remote_inputs(const match_args *m, sm_client_match_opts *co, int32_t **lm, int32_t **init) {
+  *lm = *init = NULL;
+  if (m->landmarks) {
+    int n = read_index_rows(m->landmarks, 2, lm);
+    if (n < 0) return 1;
+    co->landmarks = *lm;
+    co->n_landmarks = (uint32_t)n;
+  }
+  if (m->init_map) {
+    int n = read_index_rows(m->init_map, 1, init);
+    if (n < 0) return 1;
+    co->init_map = *init;
+    co->n_init_map = (uint32_t)n;
+  }
+  return 0;
+}
+
+/* Connects with A's id as the affinity key and makes sure both shapes are stored. */
+static int remote_pair(const char *addr, const match_args *m, shape_ref *x, shape_ref *y, sm_client **c) {
+  *c = NULL;
+  if (ref_load(x, m->a)) return client_fail(m->a, &x->err);
+  if (ref_load(y, m->b)) {
+    ref_free(x);
+    return client_fail(m->b, &y->err);
+  }
+  int rc = open_client(addr, x->id, c);
+  if (!rc && ref_upload(*c, x, 0)) rc = client_fail(m->a, &x->err);
+  if (!rc && ref_upload(*c, y, 0)) rc = client_fail(m->b, &y->err);
+  ref_free(x);
+  ref_free(y);
+  return rc;
+}
+
+static const char *basis_name(int b) {
+  return b == SM_MATCH_LB ? "lb" : b == SM_MATCH_ELASTIC ? "elastic" : "hybrid";
+}
+
+static int remote_match(const char *addr, match_args *m) {
+  shape_ref x, y;
+  sm_client *c = NULL;
+  double t0 = sm_now();
+  int32_t *lm = NULL, *init = NULL;
+  int rc = remote_inputs(m, &m->co, &lm, &init);
+  if (!rc) rc = remote_pair(addr, m, &x, &y, &c);
+  sm_client_match_result r;
+  memset(&r, 0, sizeof r);
+  if (!rc) {
+    sm_client_error e;
+    m->co.want_yx = m->out_yx != NULL;
+    m->co.want_fmap = m->out_fmap != NULL;
+    progress("%s", "matching on the server ...");
+    if (sm_client_match(c, x.id, y.id, &m->co, &r, &e)) rc = client_fail("match", &e);
+    progress("%s", "");
+  }
+  double t_total = sm_now() - t0;
+  if (!rc && m->out) rc = write_map(m->out, r.map_xy, (int32_t)r.nx);
+  if (!rc && m->out_yx) rc = write_map(m->out_yx, r.map_yx, (int32_t)r.ny);
+  if (!rc && m->out_fmap) rc = write_fmap(m->out_fmap, r.fmap, r.kC);
+  if (!rc && m->json) {
+    char hx[SM_CLIENT_ID_HEX_LEN + 1], hy[SM_CLIENT_ID_HEX_LEN + 1];
+    sm_client_id_to_hex(x.id, hx);
+    sm_client_id_to_hex(y.id, hy);
+    /* the local keys; init_distinct is not on the wire (null); the ids are extra */
+    printf("{\"source\":\"%s\",\"target\":\"%s\",\"n_source\":%u,\"n_target\":%u,"
+           "\"basis\":\"%s\",\"init\":\"%s\",\"k0\":%d,\"k1\":%d,\"step\":%d,"
+           "\"orientation\":%.6f,\"flipped\":%d,\"init_distinct\":null,"
+           "\"start_used\":\"%s\",\"dirichlet\":%.6f,"
+           "\"time\":{\"basis\":%.4f,\"init\":%.4f,\"refine\":%.4f,\"total\":%.4f},"
+           "\"map\":\"%s\",\"server\":true,\"source_id\":\"%s\",\"target_id\":\"%s\"}\n",
+           m->a, m->b, r.nx, y.nv, basis_name(m->mo.basis),
+           m->mo.init == SM_INIT_NN ? "nn" : "sinkhorn", m->mo.k0, m->mo.k1, m->mo.step,
+           r.orientation, r.flipped, r.init_used == SM_INIT_NN ? "nn" : "sinkhorn", r.dirichlet,
+           r.t_prepare, r.t_init, r.t_refine, t_total, m->out ? m->out : "", hx, hy);
+  } else if (!rc)
+    fprintf(stderr, "matched %u -> %u vertices in %.2f s on the server (bases %.2f, init %.2f, "
+            "refine %.2f); orientation %.3f%s%s%s\n", r.nx, y.nv, t_total, r.t_prepare, r.t_init,
+            r.t_refine, r.orientation, r.flipped ? " (mirror fixed)" : "", m->out ? "; map in " : "",
+            m->out ? m->out : "");
+  sm_client_match_result_free(&r);
+  free(lm);
+  free(init);
+  sm_client_close(c);
+  return rc ? 1 : 0;
+}
+
+static int remote_distance(const char *addr, match_args *m) {
+  shape_ref x, y;
+  sm_client *c = NULL;
+  double t0 = sm_now();
+  int32_t *lm = NULL, *init = NULL;
+  int rc = remote_inputs(m, &m->co, &lm, &init);
+  if (!rc) rc = remote_pair(addr, m, &x, &y, &c);
+  sm_proto_dist d;
+  if (!rc) {
+    sm_client_error e;
+    progress("%s", "distance on the server ...");
+    if (sm_client_distance(c, x.id, y.id, &m->co, &d, NULL, &e)) rc = client_fail("distance", &e);
+    progress("%s", "");
+  }
+  double t = sm_now() - t0;
+  if (!rc) {
+    printf("%.6f\n", d.total);
+    if (m->json)
+      fprintf(stderr, "{\"distance\":%.9f,\"point_xy\":%.9f,\"point_yx\":%.9f,"
+              "\"spectrum_lb\":%.9f,\"spectrum_elastic\":%.9f,\"orientation\":null,"
+              "\"time\":%.4f}\n", d.total, d.point_xy, d.point_yx, d.spectrum_lb,
+              d.spectrum_elastic, t);
+    else
+      fprintf(stderr, "distance %.6f (point %.6f / %.6f, LB spectrum %.6f, elastic spectrum "
+              "%.6f) in %.2f s on the server\n", d.total, d.point_xy, d.point_yx, d.spectrum_lb,
+              d.spectrum_elastic, t);
+  }
+  free(lm);
+  free(init);
+  sm_client_close(c);
+  return rc ? 1 : 0;
+}
+
+static int cmd_query(int argc, char **argv, const char *addr) {
+  const char *a = NULL;
+  int k = 10, mode = SM_QUERY_DEFAULT, json = 0;
+  for (int i = 0; i < argc; i++) {
+    if (!strcmp(argv[i], "-k") && i + 1 < argc) k = atoi(argv[++i]);
+    else if (!strcmp(argv[i], "--json")) json = 1;
+    else if (!strcmp(argv[i], "--mode") && i + 1 < argc) {
+      const char *v = argv[++i];
+      mode = !strcmp(v, "spectral") ? SM_QUERY_SPECTRAL : !strcmp(v, "full") ? SM_QUERY_FULL
+           : !strcmp(v, "default") ? SM_QUERY_DEFAULT : -1;
+      if (mode < 0) return usage(stderr);
+    } else if (argv[i][0] == '-' || a) return usage(stderr);
+    else a = argv[i];
+  }
+  if (!a || k < 1) return usage(stderr);
+  shape_ref r;
+  sm_client *c;
+  if (ref_load(&r, a)) return client_fail(a, &r.err);
+  int rc = open_client(addr, r.id, &c);
+  if (!rc && ref_upload(c, &r, 0)) rc = client_fail(a, &r.err);
+  ref_free(&r);
+  sm_client_hit *h = NULL;
+  uint32_t n = 0, considered = 0;
+  sm_client_error e;
+  if (!rc && sm_client_query(c, r.id, k, mode, NULL, 0, 0, &h, &n, &considered, &e))
+    rc = client_fail("query", &e);
+  for (uint32_t i = 0; !rc && i < n; i++) {
+    char hex[SM_CLIENT_ID_HEX_LEN + 1];
+    sm_client_id_to_hex(h[i].id, hex);
+    if (json) printf("%s{\"id\":\"%s\",\"distance\":%.9f}", i ? "," : "[", hex, h[i].distance);
+    else printf("%.6f %s\n", h[i].distance, hex);
+  }
+  if (!rc && json) printf("%s]\n", n ? "" : "[");
+  if (!rc) fprintf(stderr, "%u of %u stored shapes considered\n", n, considered);
+  free(h);
+  sm_client_close(c);
+  return rc;
+}
+
+static int cmd_stats(int argc, char **argv, const char *addr, int ping) {
+  int json = 0;
+  for (int i = 0; i < argc; i++) {
+    if (!strcmp(argv[i], "--json")) json = 1;
+    else return usage(stderr);
+  }
+  sm_client *c;
+  sm_client_error e;
+  if (open_client(addr, NULL, &c)) return 1;
+  int rc = 0;
+  if (ping) {
+    double rtt;
+    if (sm_client_ping(c, &rtt, &e)) rc = client_fail("ping", &e);
+    else printf("ok %.3f ms (protocol v%u)\n", 1e3 * rtt, sm_client_limits(c)->version);
+  } else {
+    sm_proto_stat *st;
+    uint32_t n;
+    if (sm_client_stats(c, &st, &n, &e)) rc = client_fail("stats", &e);
+    else {
+      for (uint32_t i = 0; i < n; i++) {
+        if (json) printf("%s\"%s\":%llu", i ? "," : "{", st[i].name, (unsigned long long)st[i].value);
+        else printf("%s %llu\n", st[i].name, (unsigned long long)st[i].value);
+      }
+      if (json) printf("%s}\n", n ? "" : "{");
+      free(st);
+    }
+  }
+  sm_client_close(c);
+  return rc;
+}
+
+/* ---- batch ---- */
+
+static void json_str(FILE *f, const char *s) {
+  fputc('"', f);
+  for (; *s; s++) {
+    unsigned char ch = (unsigned char)*s;
+    if (ch == '"' || ch == '\\') fprintf(f, "\\%c", ch);
+    else if (ch < 0x20) fprintf(f, "\\u%04x", ch);
+    else fputc(ch, f);
+  }
+  fputc('"', f);
+}
+
+static int is_mesh_name(const char *s) {
+  static const char *const ext[] = {".off", ".obj", ".ply", ".stl", ".drc", NULL};
+  char low[512];
+  size_t n = strlen(s);
+  if (n >= sizeof low) return 0;
+  for (size_t i = 0; i <= n; i++) low[i] = (char)(s[i] >= 'A' && s[i] <= 'Z' ? s[i] - 'A' + 'a' : s[i]);
+  if (n > 3 && !strcmp(low + n - 3, ".gz")) low[n - 3] = 0;
+  for (int i = 0; ext[i]; i++)
+    if (has_suffix(low, ext[i])) return 1;
+  return 0;
+}
+
+typedef struct strv {
+  char **v;
+  size_t n, cap;
+} strv;
+
+static int strv_push(strv *s, const char *str) {
+  if (s->n == s->cap) {
+    size_t nc = s->cap ? 2 * s->cap : 16;
+    char **v = realloc(s->v, nc * sizeof *v);
+    if (!v) return 1;
+    s->v = v;
+    s->cap = nc;
+  }
+  return !(s->v[s->n++] = strdup(str));
+}
+
+static void strv_free(strv *s) {
+  for (size_t i = 0; i < s->n; i++) free(s->v[i]);
+  free(s->v);
+}
+
+static int cmp_str(const void *a, const void *b) {
+  return strcmp(*(char *const *)a, *(char *const *)b);
+}
+
+/* Words of a text file, whitespace-separated, '#' to the end of a line is a comment. */
+static int read_words(const char *path, strv *out) {
+  FILE *f = fopen(path, "r");
+  if (!f) {
+    perror(path);
+    return 1;
+  }
+  char line[8192];
+  int rc = 0;
+  while (!rc && fgets(line, sizeof line, f)) {
+    char *hash = strchr(line, '#');
+    if (hash) *hash = 0;
+    for (char *tok = strtok(line, " \t\r\n"); tok && !rc; tok = strtok(NULL, " \t\r\n"))
+      rc = strv_push(out, tok);
+  }
+  fclose(f);
+  return rc;
+}
+
+/* A gallery: every mesh file of a directory (sorted by name), or the paths a list file names. */
+static int gallery_paths(const char *g, strv *out) {
+  struct stat st;
+  if (stat(g, &st)) {
+    perror(g);
+    return 1;
+  }
+  if (!S_ISDIR(st.st_mode)) return read_words(g, out);
+  DIR *d = opendir(g);
+  if (!d) {
+    perror(g);
+    return 1;
+  }
+  struct dirent *e;
+  int rc = 0;
+  size_t first = out->n;
+  while (!rc && (e = readdir(d))) {
+    if (!is_mesh_name(e->d_name)) continue;
+    char p[4096];
+    snprintf(p, sizeof p, "%s/%s", g, e->d_name);
+    rc = strv_push(out, p);
+  }
+  closedir(d);
+  qsort(out->v + first, out->n - first, sizeof *out->v, cmp_str);
+  return rc;
+}
+
+typedef struct batch_ctx {
+  const char **pa, **pb; /* per item: the names as given */
+  size_t n, n_done, n_failed;
+  const char *maps_dir;
+  int tty;
+  strv failed;          /* messages of failed items, printed at the end */
+} batch_ctx;
+
+static void batch_progress(const batch_ctx *b) {
+  if (!b->tty) return;
+  int w = 30, full = b->n ? (int)((double)w * (double)b->n_done / (double)b->n) : w;
+  char bar[64];
+  for (int i = 0; i < w; i++) bar[i] = i < full ? '#' : '.';
+  bar[w] = 0;
+  fprintf(stderr, "\r\033[K[%s] %zu/%zu%s", bar, b->n_done, b->n, b->n_failed ? " " : "");
+  if (b->n_failed) fprintf(stderr, "(%zu failed)", b->n_failed);
+  fflush(stderr);
+}
+
+static void batch_fail(batch_ctx *b, size_t i, const char *status, const char *msg) {
+  printf("{\"index\":%zu,\"a\":", i);
+  json_str(stdout, b->pa[i]);
+  printf(",\"b\":");
+  json_str(stdout, b->pb[i]);
+  printf(",\"ok\":false,\"status\":\"%s\",\"error\":", status);
+  json_str(stdout, msg);
+  printf("}\n");
+  fflush(stdout);
+  char line[1024];
+  snprintf(line, sizeof line, "item %zu (%s %s): %s", i, b->pa[i], b->pb[i], msg);
+  strv_push(&b->failed, line);
+  b->n_failed++;
+  b->n_done++;
+  batch_progress(b);
+}
+
+static int batch_cb(void *ud, size_t i, const sm_client_req *req, const sm_client_resp *r) {
+  batch_ctx *b = ud;
+  if (r->code) {
+    batch_fail(b, i, r->code == SM_CLIENT_ESTATUS ? sm_proto_status_name(r->err.status) : sm_client_strerror(r->code),
+               r->err.msg);
+    return 0;
+  }
+  const sm_proto_dist *d = req->op == SM_OP_MATCH ? &r->match.dist : &r->dist;
+  char map[4200] = "";
+  if (req->op == SM_OP_MATCH && b->maps_dir) {
+    snprintf(map, sizeof map, "%s/%zu.txt", b->maps_dir, i);
+    if (write_map(map, r->match.map_xy, (int32_t)r->match.nx)) {
+      batch_fail(b, i, "WRITE_FAILED", map);
+      return 0;
+    }
+  }
+  printf("{\"index\":%zu,\"a\":", i);
+  json_str(stdout, b->pa[i]);
+  printf(",\"b\":");
+  json_str(stdout, b->pb[i]);
+  printf(",\"ok\":true,\"distance\":%.9f,\"point_xy\":%.9f,\"point_yx\":%.9f,"
+         "\"spectrum_lb\":%.9f,\"spectrum_elastic\":%.9f,\"time\":%.4f",
+         d->total, d->point_xy, d->point_yx, d->spectrum_lb, d->spectrum_elastic,
+         req->op == SM_OP_MATCH ? r->match.t_total : r->t_total);
+  if (map[0]) {
+    printf(",\"orientation\":%.6f,\"map\":", r->match.orientation);
+    json_str(stdout, map);
+  }
+  printf("}\n");
+  fflush(stdout);
+  b->n_done++;
+  batch_progress(b);
+  return 0;
+}
+
+static int cmd_batch(int argc, char **argv, const char *addr) {
+  match_args m;
+  const char *file = NULL, *query = NULL, *gallery = NULL, *maps = NULL;
+  int inflight = 4;
+  match_args_init(&m);
+  for (int i = 0; i < argc; i++) {
+    int r = parse_match_opt(argc, argv, &i, &m);
+    if (r < 0) return usage(stderr);
+    if (r) continue;
+    const char *a = argv[i], *v = i + 1 < argc ? argv[i + 1] : NULL;
+    if (!strcmp(a, "--query") && v) query = argv[++i];
+    else if (!strcmp(a, "--gallery") && v) gallery = argv[++i];
+    else if (!strcmp(a, "--inflight") && v) inflight = atoi(argv[++i]);
+    else if (!strcmp(a, "--maps") && v) maps = argv[++i];
+    else if (a[0] == '-' || file) return usage(stderr);
+    else file = a;
+  }
+  if (m.landmarks || m.init_map || m.out || m.out_yx || m.out_fmap || inflight < 1 ||
+      (!file == !query) || (!query != !gallery)) {
+    fprintf(stderr, "shapematch batch: give FILE, or --query A with --gallery DIR|LIST; "
+                    "per-pair options (-o, --yx, --fmap, --landmarks, --init-map) do not apply\n");
+    return 2;
+  }
+  match_args_finish(&m);
+  strv words = {0};
+  if (file) {
+    if (read_words(file, &words)) return 1;
+    if (words.n % 2) {
+      fprintf(stderr, "shapematch batch: %s: %zu names, not pairs 'A B'\n", file, words.n);
+      strv_free(&words);
+      return 1;
+    }
+  } else {
+    strv g = {0};
+    if (gallery_paths(gallery, &g)) {
+      strv_free(&g);
+      return 1;
+    }
+    for (size_t i = 0; i < g.n; i++)
+      if (strcmp(g.v[i], query) && (strv_push(&words, query) || strv_push(&words, g.v[i]))) break;
+    strv_free(&g);
+  }
+  size_t n = words.n / 2;
+  if (!n) {
+    fprintf(stderr, "shapematch batch: nothing to do\n");
+    strv_free(&words);
+    return 1;
+  }
+  /* distinct shapes: encode each once */
+  strv names = {0};
+  for (size_t i = 0; i < words.n; i++) {
+    int seen = 0;
+    for (size_t j = 0; j < names.n && !seen; j++) seen = !strcmp(names.v[j], words.v[i]);
+    if (!seen) strv_push(&names, words.v[i]);
+  }
+  shape_ref *refs = calloc(names.n, sizeof *refs);
+  sm_client_req *reqs = calloc(n, sizeof *reqs);
+  size_t *item_of = calloc(n, sizeof *item_of);
+  batch_ctx b = {0};
+  b.pa = calloc(n, sizeof *b.pa);
+  b.pb = calloc(n, sizeof *b.pb);
+  b.n = n;
+  b.maps_dir = maps;
+  b.tty = isatty(STDERR_FILENO);
+  sm_client *c = NULL;
+  int rc = !refs || !reqs || !item_of || !b.pa || !b.pb;
+  for (size_t j = 0; !rc && j < names.n; j++) {
+    progress("encoding %s ...", names.v[j]);
+    ref_load(&refs[j], names.v[j]);
+  }
+  progress("%s", "");
+  if (!rc) rc = open_client(addr, query ? refs[0].id : NULL, &c);
+  for (size_t j = 0; !rc && j < names.n; j++) {
+    progress("uploading %s ...", names.v[j]);
+    ref_upload(c, &refs[j], 0);
+    ref_free(&refs[j]);
+    if (!sm_client_is_open(c)) {
+      progress("%s", "");
+      rc = client_fail(names.v[j], &refs[j].err);
+    }
+  }
+  progress("%s", "");
+  size_t nreq = 0;
+  m.co.want_distance = maps != NULL;
+  for (size_t i = 0; !rc && i < n; i++) {
+    const shape_ref *ra = NULL, *rb = NULL;
+    for (size_t j = 0; j < names.n; j++) {
+      if (!strcmp(names.v[j], words.v[2 * i])) ra = &refs[j];
+      if (!strcmp(names.v[j], words.v[2 * i + 1])) rb = &refs[j];
+    }
+    b.pa[i] = words.v[2 * i];
+    b.pb[i] = words.v[2 * i + 1];
+    if (ra->state < 0 || rb->state < 0) {
+      const shape_ref *bad = ra->state < 0 ? ra : rb;
+      char msg[600];
+      snprintf(msg, sizeof msg, "%s: %s", bad->arg, bad->err.msg);
+      batch_fail(&b, i, "UPLOAD_FAILED", msg);
+      continue;
+    }
+    sm_client_req *q = &reqs[nreq];
+    q->op = maps ? SM_OP_MATCH : SM_OP_DISTANCE;
+    memcpy(q->x, ra->id, SM_PROTO_ID_LEN);
+    memcpy(q->y, rb->id, SM_PROTO_ID_LEN);
+    q->match = &m.co;
+    item_of[nreq++] = i;
+  }
+  if (!rc && nreq) {
+    /* the callback speaks of items: remap request positions to item numbers */
+    const char **pa = calloc(nreq, sizeof *pa), **pb = calloc(nreq, sizeof *pb);
+    batch_ctx bb = b;
+    bb.pa = pa;
+    bb.pb = pb;
+    for (size_t k = 0; pa && pb && k < nreq; k++) {
+      pa[k] = b.pa[item_of[k]];
+      pb[k] = b.pb[item_of[k]];
+    }
+    sm_client_error e;
+    int brc = !pa || !pb ? SM_CLIENT_ENOMEM
+                         : sm_client_batch(c, reqs, nreq, (unsigned)inflight, 3, batch_cb, &bb, NULL, &e);
+    b.n_done = bb.n_done;
+    b.n_failed = bb.n_failed;
+    b.failed = bb.failed;
+    free(pa);
+    free(pb);
+    if (b.tty) fprintf(stderr, "\n");
+    if (brc) rc = client_fail("batch", &e);
+  }
+  if (b.n_failed) {
+    fprintf(stderr, "shapematch batch: %zu of %zu items failed:\n", b.n_failed, n);
+    for (size_t k = 0; k < b.failed.n; k++) fprintf(stderr, "  %s\n", b.failed.v[k]);
+  }
+  if (!rc && b.n_done < n) fprintf(stderr, "shapematch batch: %zu of %zu items not done\n", n - b.n_done, n);
+  int fail = rc || b.n_failed || b.n_done < n;
+  sm_client_close(c);
+  strv_free(&b.failed);
+  for (size_t j = 0; refs && j < names.n; j++) ref_free(&refs[j]);
+  free(refs);
+  free(reqs);
+  free(item_of);
+  free(b.pa);
+  free(b.pb);
+  strv_free(&names);
+  strv_free(&words);
+  return fail ? 1 : 0;
+}
+
 static int cmd_match(int argc, char **argv) {
   match_args m;
   match_run mr;
-  if (parse_match_args(argc, argv, &m)) return usage(stderr);
+  const char *addr;
+  if (take_server(&argc, argv, &addr) || parse_match_args(argc, argv, &m)) return usage(stderr);
+  if (addr) return remote_match(addr, &m);
   m.mo.want_yx = m.out_yx != NULL;
   int rc = run_match(&m, &mr);
   const sm_shape *x = mr.x, *y = mr.y;
@@ -468,7 +1173,9 @@ static int cmd_match(int argc, char **argv) {
 static int cmd_distance(int argc, char **argv) {
   match_args m;
   match_run mr;
-  if (parse_match_args(argc, argv, &m)) return usage(stderr);
+  const char *addr;
+  if (take_server(&argc, argv, &addr) || parse_match_args(argc, argv, &m)) return usage(stderr);
+  if (addr) return remote_distance(addr, &m);
   m.mo.want_yx = 1;
   int rc = run_match(&m, &mr);
   sm_distance_parts d;
@@ -631,6 +1338,21 @@ int main(int argc, char **argv) {
   if (!strcmp(cmd, "match")) return cmd_match(argc - 2, argv + 2);
   if (!strcmp(cmd, "distance")) return cmd_distance(argc - 2, argv + 2);
   if (!strcmp(cmd, "eval")) return cmd_eval(argc - 2, argv + 2);
+  if (!strcmp(cmd, "put") || !strcmp(cmd, "query") || !strcmp(cmd, "batch") ||
+      !strcmp(cmd, "stats") || !strcmp(cmd, "ping")) {
+    int n = argc - 2;
+    const char *addr;
+    if (take_server(&n, argv + 2, &addr)) return usage(stderr);
+    if (!addr) {
+      fprintf(stderr, "shapematch %s: name the daemon with --server HOST:PORT or "
+                      "SHAPEMATCH_SERVER\n", cmd);
+      return 2;
+    }
+    if (!strcmp(cmd, "put")) return cmd_put(n, argv + 2, addr);
+    if (!strcmp(cmd, "query")) return cmd_query(n, argv + 2, addr);
+    if (!strcmp(cmd, "batch")) return cmd_batch(n, argv + 2, addr);
+    return cmd_stats(n, argv + 2, addr, !strcmp(cmd, "ping"));
+  }
   if (!strcmp(cmd, "version") || !strcmp(cmd, "--version")) {
     printf("shapematch %s\n", SM_VERSION);
     return 0;
