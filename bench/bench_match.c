@@ -537,7 +537,8 @@ int main(int argc, char **argv) {
          runs, blas_threads, load0);
   printf("geo = mean geodesic error / sqrt(area); <=.05 = fraction within 0.05; bij = distinct "
          "targets / n_target; match = wall time of sm_match;\ndefault = library defaults "
-         "(multi-start), other rows one start; won = start whose map was kept\n");
+         "(one start, 2 Sinkhorn refinement steps); multi-start = default + the nn start; nn "
+         "rows: no Sinkhorn steps; won = start whose map was kept\n");
   fflush(stdout);
 
   pair_result prs[N_PAIRS];
