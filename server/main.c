@@ -1,0 +1,227 @@
+/* shapematchd: the shapematch daemon (PROTOCOL.md). Flags: shapematchd --help.
+ * Logs are logfmt lines on stderr; the bound port is announced as
+ * `msg=listening port=N` (useful with --port 0). */
+#include <cblas.h> /* OpenBLAS: openblas_set_num_threads */
+#include <errno.h>
+#include <signal.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/epoll.h>
+#include <time.h>
+#include <unistd.h>
+
+#include "sm_shell.h"
+#include "sm_srv.h"
+#include "sm_srv_log.h"
+#include "sm_srv_loop.h"
+#include "sm_srv_metrics.h"
+#include "sm_srv_pool.h"
+#include "sm_srv_store.h"
+
+volatile sig_atomic_t sm_srv_signal_flag = 0;
+
+uint64_t sm_srv_now_ns(void) {
+  struct timespec ts;
+  clock_gettime(CLOCK_MONOTONIC, &ts);
+  return (uint64_t)ts.tv_sec * 1000000000ull + (uint64_t)ts.tv_nsec;
+}
+
+void sm_srv_config_default(sm_srv_config *c) {
+  memset(c, 0, sizeof *c);
+  snprintf(c->bind, sizeof c->bind, "127.0.0.1");
+  c->port = 7878;
+  const char *xdg = getenv("XDG_STATE_HOME"), *home = getenv("HOME");
+  if (xdg && *xdg) snprintf(c->data_dir, sizeof c->data_dir, "%s/shapematch", xdg);
+  else snprintf(c->data_dir, sizeof c->data_dir, "%s/.local/state/shapematch", home ? home : ".");
+  long nc = sysconf(_SC_NPROCESSORS_ONLN);
+  c->threads = nc > 0 ? (int)nc : 1;
+  c->cache_bytes = 1024ull << 20;
+  c->max_payload = 256u << 20;
+  c->max_vertices = 2000000;
+  c->max_faces = 4000000;
+  c->max_inflight = 64;
+  c->max_batch_items = 1024;
+  c->max_query_k = 1000;
+  c->max_k = 500;
+  c->idle_timeout_ms = 300000;
+  c->drain_ms = 10000;
+  c->max_conns = 1024;
+  c->queue_len = 1024;
+  c->metrics_port = 0;
+  c->default_k = 100;
+}
+
+static void on_signal(int sig) {
+  (void)sig;
+  sm_srv_signal_flag = 1;
+}
+
+static void usage(FILE *f) {
+  fprintf(f,
+          "usage: shapematchd [--port N] [--bind ADDR] [--data-dir DIR] [--threads N]\n"
+          "                   [--cache-mb MB] [--max-payload-mb MB] [--token TOKEN]\n"
+          "                   [--metrics-port N] [--max-conns N] [--max-inflight N]\n"
+          "                   [--queue N] [--idle-timeout-ms MS] [--drain-ms MS]\n"
+          "                   [--max-vertices N] [--max-faces N] [--max-k K] [--default-k K]\n"
+          "  --port 0 picks a free port (logged as msg=listening port=N);\n"
+          "  --data-dir defaults to $XDG_STATE_HOME/shapematch or ~/.local/state/shapematch;\n"
+          "  --default-k sets the default basis size and MATCH k1 (default 100, >= 20);\n"
+          "  --token may also come from $SHAPEMATCH_TOKEN (keeps it out of ps).\n");
+}
+
+static int parse_u(const char *s, unsigned long long lo, unsigned long long hi,
+                   unsigned long long *out) {
+  char *e;
+  errno = 0;
+  unsigned long long v = strtoull(s, &e, 10);
+  if (errno || !*s || *e || v < lo || v > hi || *s == '-') return -1;
+  *out = v;
+  return 0;
+}
+
+static int parse_args(int argc, char **argv, sm_srv_config *c) {
+  const char *tok = getenv("SHAPEMATCH_TOKEN");
+  for (int i = 1; i < argc; i++) {
+    const char *a = argv[i];
+    if (!strcmp(a, "--help") || !strcmp(a, "-h")) {
+      usage(stdout);
+      exit(0);
+    }
+    if (i + 1 >= argc) {
+      fprintf(stderr, "shapematchd: %s needs a value\n", a);
+      return -1;
+    }
+    const char *v = argv[++i];
+    unsigned long long u = 0;
+    int bad = 0;
+#define NUM(flag, lo, hi, dst)                                   \
+  else if (!strcmp(a, flag)) {                                   \
+    bad = parse_u(v, lo, hi, &u);                                \
+    if (!bad) dst = u;                                           \
+  }
+    if (!strcmp(a, "--bind")) snprintf(c->bind, sizeof c->bind, "%s", v);
+    else if (!strcmp(a, "--data-dir")) snprintf(c->data_dir, sizeof c->data_dir, "%s", v);
+    else if (!strcmp(a, "--token")) tok = v;
+    NUM("--port", 0, 65535, c->port)
+    NUM("--threads", 1, 1024, c->threads)
+    NUM("--cache-mb", 1, 1ull << 24, c->cache_bytes)
+    NUM("--max-payload-mb", 1, 4095, c->max_payload)
+    NUM("--metrics-port", 0, 65535, c->metrics_port)
+    NUM("--max-conns", 1, 1000000, c->max_conns)
+    NUM("--max-inflight", 1, 65536, c->max_inflight)
+    NUM("--queue", 1, 1000000, c->queue_len)
+    NUM("--idle-timeout-ms", 0, 86400000, c->idle_timeout_ms)
+    NUM("--drain-ms", 0, 3600000, c->drain_ms)
+    NUM("--max-vertices", 3, 100000000, c->max_vertices)
+    NUM("--max-faces", 1, 200000000, c->max_faces)
+    NUM("--max-k", 20, 65535, c->max_k)
+    NUM("--default-k", 20, 65535, c->default_k)
+    else {
+      fprintf(stderr, "shapematchd: unknown flag %s\n", a);
+      return -1;
+    }
+#undef NUM
+    if (bad) {
+      fprintf(stderr, "shapematchd: bad value for %s: %s\n", a, v);
+      return -1;
+    }
+    if (!strcmp(a, "--cache-mb")) c->cache_bytes = u << 20;
+    if (!strcmp(a, "--max-payload-mb")) c->max_payload = (uint32_t)(u << 20);
+  }
+  if (tok) {
+    size_t n = strlen(tok);
+    if (n > SM_PROTO_MAX_TOKEN) {
+      fprintf(stderr, "shapematchd: token longer than %u bytes\n", SM_PROTO_MAX_TOKEN);
+      return -1;
+    }
+    memcpy(c->token, tok, n);
+    c->token_len = n;
+    c->has_token = 1;
+  }
+  if ((uint32_t)c->default_k > c->max_k) c->max_k = (uint32_t)c->default_k;
+  return 0;
+}
+
+int main(int argc, char **argv) {
+  sm_server s;
+  memset(&s, 0, sizeof s);
+  sm_srv_config_default(&s.cfg);
+  if (parse_args(argc, argv, &s.cfg)) {
+    usage(stderr);
+    return 2;
+  }
+  sm_met.start_ns = sm_srv_now_ns();
+  /* Parallelism comes from the worker pool; BLAS threads would oversubscribe. */
+  openblas_set_num_threads(1);
+  signal(SIGPIPE, SIG_IGN);
+  struct sigaction sa;
+  memset(&sa, 0, sizeof sa);
+  sa.sa_handler = on_signal;
+  sigemptyset(&sa.sa_mask);
+  sigaction(SIGTERM, &sa, NULL);
+  sigaction(SIGINT, &sa, NULL);
+
+  char q[SM_SRV_PATH_MAX + 8];
+  sm_limits lim = {s.cfg.max_vertices, s.cfg.max_faces};
+  sm_store_key def = {s.cfg.default_k, s.cfg.default_k, SM_SHELL_DEFAULT_ETA};
+  sm_error err;
+  uint64_t t0 = sm_srv_now_ns();
+  if (sm_store_open(s.cfg.data_dir, s.cfg.cache_bytes, &lim, &def, &s.store, &err)) {
+    sm_log("error", "cannot open the data directory", " dir=%s err=%s",
+           sm_log_q(s.cfg.data_dir, q, sizeof q), sm_log_q(err.msg, (char[300]){0}, 300));
+    return 1;
+  }
+  sm_store_stats ss;
+  sm_store_get_stats(s.store, &ss);
+  sm_log("info", "store opened", " dir=%s shapes=%llu bytes=%llu corrupt_deleted=%llu ms=%llu",
+         sm_log_q(s.cfg.data_dir, q, sizeof q), (unsigned long long)ss.shapes,
+         (unsigned long long)ss.shapes_bytes, (unsigned long long)ss.shapes_corrupt,
+         (unsigned long long)((sm_srv_now_ns() - t0) / 1000000));
+
+  char emsg[256];
+  int lfd = -1, mfd = -1;
+  int port = sm_srv_listen(s.cfg.bind, s.cfg.port, emsg, sizeof emsg, &lfd);
+  if (port < 0) {
+    sm_log("error", "cannot listen", " err=%s", sm_log_q(emsg, q, sizeof q));
+    sm_store_close(s.store);
+    return 1;
+  }
+  int mport = 0;
+  if (s.cfg.metrics_port) {
+    mport = sm_srv_listen("127.0.0.1", s.cfg.metrics_port, emsg, sizeof emsg, &mfd);
+    if (mport < 0) {
+      sm_log("error", "cannot listen for metrics", " err=%s", sm_log_q(emsg, q, sizeof q));
+      close(lfd);
+      sm_store_close(s.store);
+      return 1;
+    }
+  }
+  s.epfd = epoll_create1(EPOLL_CLOEXEC);
+  if (s.epfd < 0 || sm_pool_create(s.cfg.threads, s.cfg.queue_len, &s.pool)) {
+    sm_log("error", "cannot start the event loop or the worker pool", " err=\"%s\"",
+           strerror(errno));
+    return 1;
+  }
+  sm_log("info", "listening", " port=%d bind=%s threads=%d cache_mb=%llu max_payload=%u "
+         "metrics_port=%d auth=%d default_k=%d",
+         port, s.cfg.bind, s.cfg.threads, (unsigned long long)(s.cfg.cache_bytes >> 20),
+         s.cfg.max_payload, mport, s.cfg.has_token, s.cfg.default_k);
+
+  int rc = sm_srv_run(&s, lfd, mfd);
+  if (rc) {
+    /* Workers are stuck in uncancellable work: everything on disk is already complete
+     * (write-through, atomic renames), so leaving without joining loses nothing. */
+    sm_log("warn", "exiting without joining workers", NULL);
+    _exit(0);
+  }
+  sm_pool_destroy(s.pool);
+  sm_store_get_stats(s.store, &ss);
+  sm_store_close(s.store);
+  close(s.epfd);
+  /* Shapes and bases are written through (temp + fsync + rename) when created, so
+   * nothing is pending here. */
+  sm_log("info", "shutdown complete", " shapes=%llu requests=%llu",
+         (unsigned long long)ss.shapes, (unsigned long long)sm_met_get(&sm_met.requests));
+  return 0;
+}

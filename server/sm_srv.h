@@ -1,0 +1,78 @@
+/* sm_srv: the daemon's shared configuration and top-level state.
+ *
+ * DESIGN (threads and locks; memcached doc/threads.txt style)
+ *   Threads
+ *     - the loop thread (main): epoll loop, every socket, every sm_conn, the in-flight
+ *       tables, HELLO/PING/STATS/HAS/DROP/CANCEL (answered inline, never queued);
+ *     - N worker threads (sm_srv_pool): PUT_SHAPE, PREPARE, MATCH, DISTANCE, QUERY, BATCH.
+ *       A worker never touches an sm_conn: it reads its job (an owned copy of the request)
+ *       and posts encoded response frames back through the pool's done list + eventfd;
+ *     - no other thread. Signal handlers only set sm_srv_signal_flag.
+ *   Locks (in the only order they may nest; never hold one while blocking on I/O to a peer)
+ *     1. store->mu   (sm_srv_store: index, prepared-shape cache, LRU, single-flight state;
+ *                     condition variable store->cv for single-flight waiters)
+ *     2. pool->mu    (sm_srv_pool: job queue; cv for idle workers)
+ *     3. pool->done_mu (completion list; the loop drains it after the eventfd fires)
+ *     In practice none of them nests: each is taken and released within one function.
+ *   Atomics: sm_metrics counters (relaxed), job->cancel (set by the loop on CANCEL or
+ *   disconnect or drain timeout, read by the core's cancel callback on a worker).
+ *   Lifetime: a job holds a plain pointer to its connection, used only by the loop thread
+ *   when the job's completion arrives; a closed connection stays allocated (fd closed)
+ *   until its last job has completed.
+ */
+#ifndef SM_SRV_H
+#define SM_SRV_H
+
+#include <signal.h>
+#include <stddef.h>
+#include <stdint.h>
+
+#define SM_SRV_PATH_MAX 4096
+
+typedef struct sm_srv_config {
+  char bind[64];            /* --bind, default 127.0.0.1 */
+  int port;                 /* --port, 0 = ephemeral */
+  char data_dir[SM_SRV_PATH_MAX];
+  int threads;              /* --threads, default = cores */
+  uint64_t cache_bytes;     /* --cache-mb: in-memory prepared shapes */
+  uint32_t max_payload;     /* --max-payload-mb */
+  uint32_t max_vertices, max_faces;
+  uint32_t max_inflight, max_batch_items, max_query_k, max_k;
+  uint32_t idle_timeout_ms; /* 0 = none */
+  uint32_t drain_ms;        /* graceful shutdown budget */
+  int max_conns;
+  int queue_len;            /* bounded job queue; full = BUSY */
+  int metrics_port;         /* 0 = off */
+  int default_k;            /* server default basis size (PROTOCOL.md: 100) */
+  uint8_t token[256];
+  size_t token_len;
+  int has_token;
+} sm_srv_config;
+
+void sm_srv_config_default(sm_srv_config *c);
+
+struct sm_store;
+struct sm_pool;
+struct sm_conn;
+
+/* Loop-thread state (workers read cfg and use store/pool only). */
+typedef struct sm_server {
+  sm_srv_config cfg;
+  struct sm_store *store;
+  struct sm_pool *pool;
+  int epfd;
+  struct sm_conn *conns;    /* every connection not yet freed (incl. closed ones) */
+  int n_active;             /* connections counted against max_conns */
+  uint64_t next_conn_id;
+  int draining;             /* SIGTERM/SIGINT seen: GOAWAY sent, no accepts */
+  uint64_t drain_deadline_ns;
+  int cancelled_all;        /* drain budget spent: every job's cancel flag set */
+} sm_server;
+
+/* Set by the SIGTERM/SIGINT handler; the loop polls it. */
+extern volatile sig_atomic_t sm_srv_signal_flag;
+
+/* Monotonic clock in nanoseconds / microseconds. */
+uint64_t sm_srv_now_ns(void);
+
+#endif

@@ -1,0 +1,636 @@
+/* Connection state machine and frame handling on the loop thread: see sm_srv_conn.h. */
+#include "sm_srv_conn.h"
+
+#include <errno.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/epoll.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
+#include "sm_srv_exec.h"
+#include "sm_srv_log.h"
+#include "sm_srv_metrics.h"
+#include "sm_srv_store.h"
+
+#define RBUF_MIN 4096u
+#define RBUF_KEEP (1u << 20)   /* shrink the read buffer back after a larger frame */
+#define STEAL_MIN (64u << 10)  /* hand a large frame's buffer to its job instead of copying */
+#define LINGER_NS 2000000000ull
+#define BUSY_RETRY_MS 100u
+
+sm_wbuf *sm_wbuf_new(size_t len) {
+  sm_wbuf *w = malloc(sizeof *w + len);
+  if (!w) return NULL;
+  w->next = NULL;
+  w->len = len;
+  w->off = 0;
+  return w;
+}
+
+static void wq_push(sm_conn *c, sm_wbuf *w) {
+  if (!w) return;
+  w->next = NULL;
+  if (c->wq_tail) c->wq_tail->next = w;
+  else c->wq_head = w;
+  c->wq_tail = w;
+  c->wq_bytes += w->len;
+}
+
+static void wq_free(sm_conn *c) {
+  for (sm_wbuf *w = c->wq_head, *n; w; w = n) {
+    n = w->next;
+    free(w);
+  }
+  c->wq_head = c->wq_tail = NULL;
+  c->wq_bytes = 0;
+}
+
+size_t sm_error_payload(uint8_t *out, uint32_t retry, uint32_t detail, const char *msg) {
+  size_t ml = msg ? strlen(msg) : 0;
+  if (ml > SM_PROTO_MAX_MSG) ml = SM_PROTO_MAX_MSG;
+  uint32_t v[3] = {retry, detail, (uint32_t)ml};
+  for (int i = 0; i < 3; i++)
+    for (int b = 0; b < 4; b++) out[4 * i + b] = (uint8_t)(v[i] >> (8 * b));
+  if (ml) memcpy(out + 12, msg, ml);
+  return 12 + ml;
+}
+
+sm_wbuf *sm_error_frame(uint8_t opcode, uint32_t rid, uint16_t status, uint32_t retry,
+                        uint32_t detail, const char *msg) {
+  sm_wbuf *w = sm_wbuf_new(SM_PROTO_HEADER_LEN + 12 + SM_PROTO_MAX_MSG);
+  if (!w) return NULL;
+  size_t pl = sm_error_payload(w->data + SM_PROTO_HEADER_LEN, retry, detail, msg);
+  sm_proto_header h = {SM_PROTO_VERSION, opcode, SM_PROTO_F_RESPONSE, rid, status, (uint32_t)pl};
+  sm_proto_write_header(w->data, &h);
+  w->len = SM_PROTO_HEADER_LEN + pl;
+  return w;
+}
+
+/* ------------------------------------------------------------------ lifecycle */
+
+sm_conn *sm_conn_new(sm_server *s, int fd, int kind, const char *peer) {
+  sm_conn *c = calloc(1, sizeof *c);
+  if (!c) return NULL;
+  c->inflight = calloc(s->cfg.max_inflight ? s->cfg.max_inflight : 1, sizeof *c->inflight);
+  if (!c->inflight) {
+    free(c);
+    return NULL;
+  }
+  c->kind = kind;
+  c->fd = fd;
+  c->id = ++s->next_conn_id;
+  snprintf(c->peer, sizeof c->peer, "%s", peer);
+  c->limit = SM_PROTO_HELLO_MAX_PAYLOAD;
+  c->version = SM_PROTO_VERSION;
+  c->last_active_ns = sm_srv_now_ns();
+  c->next = s->conns;
+  if (s->conns) s->conns->prev = c;
+  s->conns = c;
+  if (kind == SM_H_CONN) {
+    s->n_active++;
+    sm_met_add(&sm_met.connections, 1);
+    sm_met_add(&sm_met.connections_total, 1);
+  }
+  struct epoll_event ev = {.events = EPOLLIN, .data.ptr = c};
+  c->ev_mask = EPOLLIN;
+  epoll_ctl(s->epfd, EPOLL_CTL_ADD, fd, &ev);
+  return c;
+}
+
+static void conn_free(sm_server *s, sm_conn *c) {
+  if (c->prev) c->prev->next = c->next;
+  else s->conns = c->next;
+  if (c->next) c->next->prev = c->prev;
+  wq_free(c);
+  free(c->rbuf);
+  free(c->inflight);
+  free(c);
+}
+
+static void leave_active(sm_server *s, sm_conn *c) {
+  if (c->kind == SM_H_CONN && c->state == SM_CONN_OPEN) {
+    s->n_active--;
+    sm_met_sub(&sm_met.connections, 1);
+  }
+}
+
+void sm_conn_cancel_all(sm_conn *c, int v) {
+  for (uint32_t i = 0; i < c->n_inflight; i++) {
+    int zero = 0;
+    atomic_compare_exchange_strong(&c->inflight[i]->cancel, &zero, v);
+  }
+}
+
+void sm_conn_close(sm_server *s, sm_conn *c) {
+  if (c->state == SM_CONN_DEAD) return;
+  leave_active(s, c);
+  if (c->fd >= 0) {
+    epoll_ctl(s->epfd, EPOLL_CTL_DEL, c->fd, NULL);
+    close(c->fd);
+    c->fd = -1;
+  }
+  c->state = SM_CONN_DEAD;
+  wq_free(c);
+  sm_conn_cancel_all(c, 1); /* closing a connection cancels its requests */
+  if (c->kind == SM_H_CONN)
+    sm_log("info", "connection closed", " conn=%llu peer=%s inflight=%u",
+           (unsigned long long)c->id, c->peer, c->n_inflight);
+}
+
+void sm_conn_sweep(sm_server *s) {
+  for (sm_conn *c = s->conns, *n; c; c = n) {
+    n = c->next;
+    if (c->state == SM_CONN_DEAD && c->n_inflight == 0) conn_free(s, c);
+  }
+}
+
+void sm_conn_update_events(sm_server *s, sm_conn *c) {
+  if (c->fd < 0) return;
+  uint32_t m = 0;
+  if (c->state == SM_CONN_OPEN && c->wq_bytes < SM_CONN_WQ_HIGH) m |= EPOLLIN;
+  if (c->state == SM_CONN_LINGER) m |= EPOLLIN;
+  if (c->wq_head) m |= EPOLLOUT;
+  if (m != c->ev_mask) {
+    struct epoll_event ev = {.events = m, .data.ptr = c};
+    epoll_ctl(s->epfd, EPOLL_CTL_MOD, c->fd, &ev);
+    c->ev_mask = m;
+  }
+}
+
+static void queue_frame(sm_server *s, sm_conn *c, sm_wbuf *w) {
+  if (!w || c->fd < 0 || c->state == SM_CONN_DEAD) {
+    free(w);
+    return;
+  }
+  wq_push(c, w);
+  sm_conn_update_events(s, c);
+}
+
+void sm_conn_send_error(sm_server *s, sm_conn *c, uint8_t opcode, uint32_t rid,
+                        uint16_t status, uint32_t retry, uint32_t detail, const char *msg) {
+  sm_met_add(&sm_met.errors, 1);
+  queue_frame(s, c, sm_error_frame(opcode, rid, status, retry, detail, msg));
+}
+
+void sm_conn_fatal(sm_server *s, sm_conn *c, uint16_t status, uint32_t rid, uint32_t retry,
+                   uint32_t detail, const char *msg) {
+  if (c->state != SM_CONN_OPEN) return;
+  sm_met_add(&sm_met.fatal_errors, 1);
+  sm_log("warn", "connection-fatal error", " conn=%llu peer=%s status=%s rid=%u detail=%u",
+         (unsigned long long)c->id, c->peer, sm_proto_status_name(status), rid, detail);
+  queue_frame(s, c, sm_error_frame(SM_OP_GOAWAY, rid, status, retry, detail, msg));
+  leave_active(s, c);
+  c->state = SM_CONN_FLUSH_CLOSE;
+  sm_conn_cancel_all(c, 1);
+  c->rlen = 0;
+  sm_conn_update_events(s, c);
+  if (!c->wq_head) sm_conn_on_writable(s, c);
+}
+
+void sm_conn_goaway(sm_server *s, sm_conn *c) {
+  if (c->state != SM_CONN_OPEN || c->goaway_sent || c->kind != SM_H_CONN) return;
+  c->goaway_sent = 1;
+  queue_frame(s, c, sm_error_frame(SM_OP_GOAWAY, 0, SM_ST_OK, 1000, s->cfg.drain_ms,
+                                   "server shutting down"));
+}
+
+/* ------------------------------------------------------------------ write side */
+
+void sm_conn_on_writable(sm_server *s, sm_conn *c) {
+  if (c->fd < 0) return;
+  while (c->wq_head && c->fd >= 0) {
+    sm_wbuf *w = c->wq_head;
+    ssize_t n = send(c->fd, w->data + w->off, w->len - w->off, MSG_NOSIGNAL);
+    if (n < 0) {
+      if (errno == EINTR) continue;
+      if (errno == EAGAIN || errno == EWOULDBLOCK) break;
+      sm_conn_close(s, c); /* peer gone */
+      return;
+    }
+    sm_met_add(&sm_met.bytes_out, (uint64_t)n);
+    w->off += (size_t)n;
+    c->wq_bytes -= (size_t)n;
+    if (w->off == w->len) {
+      c->wq_head = w->next;
+      if (!c->wq_head) c->wq_tail = NULL;
+      free(w);
+    }
+  }
+  if (c->fd < 0) return;
+  if (!c->wq_head && c->state == SM_CONN_FLUSH_CLOSE) {
+    /* Half-close, then read and discard for a moment: closing with unread input would
+     * make the kernel send RST, which can destroy the GOAWAY frame before it is read. */
+    shutdown(c->fd, SHUT_WR);
+    c->state = SM_CONN_LINGER;
+    c->linger_deadline_ns = sm_srv_now_ns() + LINGER_NS;
+  }
+  if (c->kind == SM_H_CONN && c->state == SM_CONN_OPEN && s->draining && !c->wq_head &&
+      c->n_inflight == 0) {
+    leave_active(s, c); /* drained: graceful close */
+    c->state = SM_CONN_FLUSH_CLOSE;
+    sm_conn_on_writable(s, c);
+    return;
+  }
+  sm_conn_update_events(s, c);
+}
+
+/* ------------------------------------------------------------------ read side */
+
+static int inflight_find(const sm_conn *c, uint32_t rid) {
+  for (uint32_t i = 0; i < c->n_inflight; i++)
+    if (c->inflight[i]->rid == rid) return (int)i;
+  return -1;
+}
+
+static void send_ok(sm_server *s, sm_conn *c, sm_wbuf *w, ptrdiff_t len) {
+  if (len <= 0 || !w || (size_t)len > w->len) {
+    free(w);
+    return;
+  }
+  w->len = (size_t)len;
+  if (c->max_response && w->len - SM_PROTO_HEADER_LEN > c->max_response) {
+    uint8_t op = w->data[5];
+    uint32_t rid = (uint32_t)w->data[8] | (uint32_t)w->data[9] << 8 |
+                   (uint32_t)w->data[10] << 16 | (uint32_t)w->data[11] << 24;
+    uint32_t need = (uint32_t)(w->len - SM_PROTO_HEADER_LEN);
+    free(w);
+    sm_conn_send_error(s, c, op, rid, SM_ST_RESPONSE_TOO_LARGE, 0, need,
+                       "response exceeds max_response");
+    return;
+  }
+  queue_frame(s, c, w);
+}
+
+static int ct_equal(const uint8_t *a, size_t na, const uint8_t *b, size_t nb) {
+  unsigned d = na != nb;
+  size_t n = na > nb ? na : nb;
+  for (size_t i = 0; i < n; i++) d |= (unsigned)((i < na ? a[i] : 0) ^ (i < nb ? b[i] : 0));
+  return d == 0;
+}
+
+static void on_hello(sm_server *s, sm_conn *c, const sm_proto_frame *f) {
+  const sm_srv_config *cfg = &s->cfg;
+  sm_proto_hello_req q;
+  int rc = sm_proto_dec_hello_req(f->body, f->body_len, &q);
+  if (rc) {
+    sm_conn_send_error(s, c, SM_OP_HELLO, f->h.request_id, SM_ST_BAD_REQUEST, 0, 0,
+                       sm_proto_strerror(rc));
+    return;
+  }
+  if (q.max_version < SM_PROTO_VERSION_MIN || q.min_version > SM_PROTO_VERSION_MAX) {
+    sm_conn_fatal(s, c, SM_ST_UNSUPPORTED_VERSION, f->h.request_id, 0,
+                  SM_PROTO_VERSION_MIN | (uint32_t)SM_PROTO_VERSION_MAX << 16,
+                  "no common protocol version");
+    return;
+  }
+  if (cfg->has_token && !ct_equal(q.token, q.token_len, cfg->token, cfg->token_len)) {
+    sm_conn_fatal(s, c, SM_ST_UNAUTHORIZED, f->h.request_id, 0, 0, "token missing or wrong");
+    return;
+  }
+  uint16_t v = q.max_version < SM_PROTO_VERSION_MAX ? q.max_version : SM_PROTO_VERSION_MAX;
+  sm_proto_hello_resp o = {v, cfg->max_payload, cfg->max_vertices, cfg->max_faces,
+                           cfg->max_inflight, cfg->max_batch_items, cfg->max_query_k,
+                           cfg->max_k, cfg->idle_timeout_ms,
+                           cfg->has_token ? SM_HELLO_F_AUTH_REQUIRED : 0};
+  sm_proto_header h = {SM_PROTO_VERSION, SM_OP_HELLO, SM_PROTO_F_RESPONSE, f->h.request_id, 0, 0};
+  sm_wbuf *w = sm_wbuf_new(SM_PROTO_HEADER_LEN + 40 + 4);
+  if (w) send_ok(s, c, w, sm_proto_enc_hello_resp(w->data, w->len, &h, &o));
+  c->hello_done = 1;
+  c->version = (uint8_t)v;
+  c->limit = cfg->max_payload;
+  c->max_response = q.max_response;
+}
+
+static void on_stats(sm_server *s, sm_conn *c, const sm_proto_frame *f) {
+  sm_proto_stat st[64];
+  sm_proto_stats_resp o = {st, NULL, sm_met_stats(s->store, st, 64)};
+  sm_proto_header h = {SM_PROTO_VERSION, SM_OP_STATS, SM_PROTO_F_RESPONSE, f->h.request_id, 0, 0};
+  sm_wbuf *w = sm_wbuf_new(SM_PROTO_HEADER_LEN + 8 + 32 * 64 + 4);
+  if (w) send_ok(s, c, w, sm_proto_enc_stats_resp(w->data, w->len, &h, &o));
+}
+
+/* Queues a compute request; takes the frame bytes from rbuf (copied or stolen). */
+static void submit_job(sm_server *s, sm_conn *c, const sm_proto_frame *f, size_t frame_len,
+                       int steal) {
+  uint32_t rid = f->h.request_id;
+  if (c->n_inflight >= s->cfg.max_inflight) {
+    sm_conn_send_error(s, c, f->h.opcode, rid, SM_ST_LIMIT_EXCEEDED, 0, s->cfg.max_inflight,
+                       "too many requests in flight on this connection");
+    return;
+  }
+  sm_job *j = calloc(1, sizeof *j);
+  if (!j) {
+    sm_conn_send_error(s, c, f->h.opcode, rid, SM_ST_INTERNAL, 0, 0, "out of memory");
+    return;
+  }
+  if (steal) { /* the frame is the whole buffer: hand it over */
+    j->buf = c->rbuf;
+    j->body = f->body;
+    c->rbuf = NULL;
+    c->rcap = 0;
+  } else {
+    j->buf = malloc(f->body_len ? f->body_len : 1);
+    if (!j->buf) {
+      free(j);
+      sm_conn_send_error(s, c, f->h.opcode, rid, SM_ST_INTERNAL, 0, 0, "out of memory");
+      return;
+    }
+    memcpy(j->buf, f->body, f->body_len);
+    j->body = j->buf;
+  }
+  (void)frame_len;
+  j->body_len = f->body_len;
+  j->base.run = sm_exec_run;
+  j->srv = s;
+  j->conn = c;
+  j->rid = rid;
+  j->opcode = f->h.opcode;
+  j->max_response = c->max_response;
+  j->recv_ns = sm_srv_now_ns();
+  int rc = sm_pool_submit(s->pool, &j->base);
+  if (rc) {
+    free(j->buf);
+    free(j);
+    if (rc == SM_POOL_EFULL) {
+      sm_met_add(&sm_met.busy, 1);
+      sm_conn_send_error(s, c, f->h.opcode, rid, SM_ST_BUSY, BUSY_RETRY_MS, 0, "job queue full");
+    } else {
+      sm_conn_send_error(s, c, f->h.opcode, rid, SM_ST_SHUTTING_DOWN, 0, 0, "shutting down");
+    }
+    return;
+  }
+  c->inflight[c->n_inflight++] = j;
+  sm_met_add(&sm_met.inflight, 1);
+}
+
+/* One complete, header-valid frame. Returns 1 if the frame's buffer was stolen. */
+static int on_frame(sm_server *s, sm_conn *c, const sm_proto_frame *f, size_t frame_len,
+                    int can_steal) {
+  uint32_t rid = f->h.request_id;
+  uint8_t op = f->h.opcode;
+  if (f->h.flags & SM_PROTO_F_RESPONSE) {
+    sm_conn_fatal(s, c, SM_ST_PROTOCOL_ERROR, rid, 0, 0, "RESPONSE flag on a client frame");
+    return 0;
+  }
+  if (!c->hello_done) {
+    if (op != SM_OP_HELLO) {
+      sm_conn_fatal(s, c, SM_ST_PROTOCOL_ERROR, rid, 0, 0, "HELLO must be the first frame");
+      return 0;
+    }
+    sm_met_add(&sm_met.requests, 1);
+    on_hello(s, c, f);
+    return 0;
+  }
+  if (f->h.version != c->version) {
+    sm_conn_fatal(s, c, SM_ST_UNSUPPORTED_VERSION, rid, 0,
+                  SM_PROTO_VERSION_MIN | (uint32_t)SM_PROTO_VERSION_MAX << 16,
+                  "frame version differs from the negotiated one");
+    return 0;
+  }
+  if (op == SM_OP_HELLO) {
+    sm_conn_fatal(s, c, SM_ST_PROTOCOL_ERROR, rid, 0, 0, "second HELLO");
+    return 0;
+  }
+  if (inflight_find(c, rid) >= 0) {
+    sm_conn_fatal(s, c, SM_ST_PROTOCOL_ERROR, rid, 0, 0, "request_id reused while in flight");
+    return 0;
+  }
+  sm_met_add(&sm_met.requests, 1);
+  if (s->draining) {
+    sm_conn_send_error(s, c, op, rid, SM_ST_SHUTTING_DOWN, 1000, 0, "server is shutting down");
+    return 0;
+  }
+  sm_proto_header h = {c->version, op, SM_PROTO_F_RESPONSE, rid, 0, 0};
+  int rc;
+  switch (op) {
+  case SM_OP_PING: {
+    sm_proto_ping q;
+    if ((rc = sm_proto_dec_ping(f->body, f->body_len, &q))) break;
+    sm_wbuf *w = sm_wbuf_new(SM_PROTO_HEADER_LEN + 8 + 4);
+    if (w) send_ok(s, c, w, sm_proto_enc_ping(w->data, w->len, &h, 1, &q));
+    return 0;
+  }
+  case SM_OP_STATS:
+    if ((rc = sm_proto_dec_empty(f->body, f->body_len))) break;
+    on_stats(s, c, f);
+    return 0;
+  case SM_OP_HAS_SHAPE: {
+    sm_proto_id_req q;
+    if ((rc = sm_proto_dec_id_req(f->body, f->body_len, &q))) break;
+    sm_proto_has_resp o = {0, 0, 0};
+    int prepared = 0;
+    if (sm_store_has(s->store, q.id, &o.n_vertices, &o.n_faces, &prepared))
+      o.flags = SM_HAS_STORED | (prepared ? SM_HAS_PREPARED : 0);
+    sm_wbuf *w = sm_wbuf_new(SM_PROTO_HEADER_LEN + 12 + 4);
+    if (w) send_ok(s, c, w, sm_proto_enc_has_resp(w->data, w->len, &h, &o));
+    return 0;
+  }
+  case SM_OP_DROP_SHAPE: {
+    sm_proto_id_req q;
+    if ((rc = sm_proto_dec_id_req(f->body, f->body_len, &q))) break;
+    if (sm_store_drop(s->store, q.id)) {
+      sm_conn_send_error(s, c, op, rid, SM_ST_NOT_FOUND, 0, 0, "shape not stored");
+    } else {
+      char hex[65];
+      sm_hex(q.id, 32, hex);
+      sm_log("info", "shape dropped", " id=%s conn=%llu", hex, (unsigned long long)c->id);
+      sm_wbuf *w = sm_wbuf_new(SM_PROTO_HEADER_LEN + 4);
+      if (w) send_ok(s, c, w, sm_proto_enc_empty(w->data, w->len, &h));
+    }
+    return 0;
+  }
+  case SM_OP_CANCEL: {
+    sm_proto_cancel_req q;
+    if ((rc = sm_proto_dec_cancel_req(f->body, f->body_len, &q))) break;
+    int i = inflight_find(c, q.target);
+    if (i < 0) {
+      sm_conn_send_error(s, c, op, rid, SM_ST_NOT_FOUND, 0, 0, "no such request in flight");
+    } else {
+      int zero = 0;
+      atomic_compare_exchange_strong(&c->inflight[i]->cancel, &zero, 1);
+      sm_wbuf *w = sm_wbuf_new(SM_PROTO_HEADER_LEN + 4);
+      if (w) send_ok(s, c, w, sm_proto_enc_empty(w->data, w->len, &h));
+    }
+    return 0;
+  }
+  case SM_OP_PUT_SHAPE:
+  case SM_OP_PREPARE:
+  case SM_OP_MATCH:
+  case SM_OP_DISTANCE:
+  case SM_OP_QUERY:
+  case SM_OP_BATCH: {
+    int steal = can_steal && frame_len >= STEAL_MIN && c->n_inflight < s->cfg.max_inflight;
+    submit_job(s, c, f, frame_len, steal);
+    return steal && c->rbuf == NULL;
+  }
+  case SM_OP_GOAWAY:
+    sm_conn_send_error(s, c, op, rid, SM_ST_BAD_REQUEST, 0, 0, "GOAWAY is server to client only");
+    return 0;
+  default:
+    sm_conn_send_error(s, c, op, rid, SM_ST_UNKNOWN_OPCODE, 0, 0, "unknown opcode");
+    return 0;
+  }
+  sm_conn_send_error(s, c, op, rid, sm_proto_status_for_error(rc), 0, 0, sm_proto_strerror(rc));
+  return 0;
+}
+
+static uint32_t le32(const uint8_t *p) {
+  return (uint32_t)p[0] | (uint32_t)p[1] << 8 | (uint32_t)p[2] << 16 | (uint32_t)p[3] << 24;
+}
+
+/* Handles every complete frame at the start of rbuf. */
+static void process(sm_server *s, sm_conn *c) {
+  size_t off = 0;
+  while (c->state == SM_CONN_OPEN && c->rbuf && off < c->rlen) {
+    const uint8_t *p = c->rbuf + off;
+    size_t avail = c->rlen - off;
+    sm_proto_header h;
+    int rc = sm_proto_parse_header(p, avail, c->limit, &h);
+    if (rc == SM_PROTO_PARTIAL) break;
+    if (rc < 0) {
+      uint16_t st = sm_proto_status_for_error(rc);
+      uint32_t rid = 0, detail = 0;
+      if (rc == SM_PROTO_ETOOBIG) { /* header intact, only too large */
+        rid = le32(p + 8);
+        detail = c->limit;
+      }
+      if (rc == SM_PROTO_EVERSION) detail = SM_PROTO_VERSION_MIN | (uint32_t)SM_PROTO_VERSION_MAX << 16;
+      char msg[128];
+      snprintf(msg, sizeof msg, "%s", sm_proto_strerror(rc));
+      sm_conn_fatal(s, c, st, rid, 0, detail, msg);
+      return;
+    }
+    size_t total = SM_PROTO_HEADER_LEN + (size_t)h.payload_len;
+    if (avail < total) {
+      if (off == 0 && c->rcap < total) { /* grow only after the header was accepted */
+        uint8_t *nb = realloc(c->rbuf, total);
+        if (!nb) {
+          sm_conn_fatal(s, c, SM_ST_FRAME_TOO_LARGE, h.request_id, 0, c->limit, "out of memory");
+          return;
+        }
+        c->rbuf = nb;
+        c->rcap = total;
+      }
+      break;
+    }
+    sm_proto_frame f;
+    ptrdiff_t fr = sm_proto_parse_frame(p, avail, c->limit, &f);
+    if (fr < 0) {
+      sm_conn_fatal(s, c, sm_proto_status_for_error((int)fr), h.request_id, 0, 0,
+                    sm_proto_strerror((int)fr));
+      return;
+    }
+    c->frame_start_ns = sm_srv_now_ns();
+    int can_steal = off == 0 && total == c->rlen;
+    int stolen = on_frame(s, c, &f, total, can_steal);
+    if (stolen) {
+      c->rlen = 0;
+      return;
+    }
+    off += total;
+  }
+  if (off && c->rbuf) {
+    memmove(c->rbuf, c->rbuf + off, c->rlen - off);
+    c->rlen -= off;
+    c->frame_start_ns = sm_srv_now_ns(); /* a partial frame's clock starts now */
+  }
+  if (c->rlen == 0 && c->rcap > RBUF_KEEP) {
+    free(c->rbuf);
+    c->rbuf = NULL;
+    c->rcap = 0;
+  }
+}
+
+void sm_conn_on_readable(sm_server *s, sm_conn *c) {
+  if (c->state == SM_CONN_LINGER) {
+    uint8_t tmp[16384];
+    for (;;) {
+      ssize_t n = recv(c->fd, tmp, sizeof tmp, 0);
+      if (n > 0) continue;
+      if (n < 0 && errno == EINTR) continue;
+      if (n < 0 && (errno == EAGAIN || errno == EWOULDBLOCK)) return;
+      sm_conn_close(s, c); /* EOF or error: the peer has seen everything */
+      return;
+    }
+  }
+  if (c->state != SM_CONN_OPEN) return;
+  for (int rounds = 0; rounds < 16 && c->state == SM_CONN_OPEN; rounds++) {
+    if (!c->rbuf || c->rlen == c->rcap) {
+      /* Before the header is complete, read at most what a header needs beyond a
+       * minimum buffer; the payload size decides any further growth (process()). */
+      size_t ncap = c->rcap ? c->rcap * 2 : RBUF_MIN;
+      size_t maxcap = (size_t)SM_PROTO_HEADER_LEN + c->limit;
+      if (ncap > maxcap) ncap = maxcap > c->rcap ? maxcap : c->rcap + RBUF_MIN;
+      if (c->rbuf && c->rlen == c->rcap && ncap <= c->rcap) ncap = c->rcap + RBUF_MIN;
+      uint8_t *nb = realloc(c->rbuf, ncap);
+      if (!nb) {
+        sm_conn_fatal(s, c, SM_ST_FRAME_TOO_LARGE, 0, 0, c->limit, "out of memory");
+        return;
+      }
+      c->rbuf = nb;
+      c->rcap = ncap;
+    }
+    ssize_t n = recv(c->fd, c->rbuf + c->rlen, c->rcap - c->rlen, 0);
+    if (n < 0 && errno == EINTR) continue;
+    if (n < 0 && (errno == EAGAIN || errno == EWOULDBLOCK)) break;
+    if (n <= 0) {
+      sm_conn_close(s, c); /* EOF or reset: cancels the connection's jobs */
+      return;
+    }
+    sm_met_add(&sm_met.bytes_in, (uint64_t)n);
+    uint64_t now = sm_srv_now_ns();
+    if (c->rlen == 0) c->frame_start_ns = now;
+    c->last_active_ns = now;
+    c->rlen += (size_t)n;
+    if (c->kind == SM_H_HTTP) return; /* handled by the loop */
+    process(s, c);
+    if (c->wq_bytes >= SM_CONN_WQ_HIGH) break; /* backpressure */
+  }
+  if (c->fd >= 0) sm_conn_update_events(s, c);
+}
+
+void sm_conn_on_done(sm_server *s, sm_srv_out *o) {
+  sm_job *j = o->job;
+  sm_conn *c = j->conn;
+  sm_wbuf *w = o->frames;
+  if (c->state == SM_CONN_OPEN) {
+    c->last_active_ns = sm_srv_now_ns();
+    queue_frame(s, c, w);
+  } else {
+    free(w);
+  }
+  if (o->final) {
+    int i = inflight_find(c, j->rid);
+    if (i >= 0) c->inflight[i] = c->inflight[--c->n_inflight];
+    sm_met_sub(&sm_met.inflight, 1);
+    free(j->buf);
+    free(j);
+    if (c->state == SM_CONN_OPEN && s->draining) sm_conn_on_writable(s, c);
+  }
+  free(o);
+}
+
+void sm_conn_tick(sm_server *s, uint64_t now) {
+  uint64_t idle = (uint64_t)s->cfg.idle_timeout_ms * 1000000ull;
+  for (sm_conn *c = s->conns, *n; c; c = n) {
+    n = c->next;
+    if (c->state == SM_CONN_LINGER && now > c->linger_deadline_ns) {
+      sm_conn_close(s, c);
+      continue;
+    }
+    if (c->state == SM_CONN_FLUSH_CLOSE && now > c->last_active_ns + 30000000000ull) {
+      sm_conn_close(s, c); /* the peer does not read its GOAWAY */
+      continue;
+    }
+    if (c->state != SM_CONN_OPEN || !idle) continue;
+    if (c->rlen > 0 && now > c->frame_start_ns + idle) {
+      sm_conn_fatal(s, c, SM_ST_TIMEOUT, 0, 0, s->cfg.idle_timeout_ms,
+                    "frame not completed within the idle timeout");
+    } else if (c->rlen == 0 && c->n_inflight == 0 && !c->wq_head &&
+               now > c->last_active_ns + idle) {
+      sm_conn_fatal(s, c, SM_ST_TIMEOUT, 0, 0, s->cfg.idle_timeout_ms, "idle timeout");
+    }
+  }
+}

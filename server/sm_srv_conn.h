@@ -1,0 +1,123 @@
+/* sm_srv_conn: one client connection and its frame handling (PROTOCOL.md sections 2-5),
+ * on the loop thread; and the job that carries a request to a worker (sm_srv_exec).
+ *
+ * Contract
+ *   - Everything here runs on the loop thread, except that a worker owns a job between
+ *     sm_pool_submit and its final sm_srv_out (it reads the job's own fields and writes
+ *     nothing but job->deadline_hit; conn is opaque to it).
+ *   - Read side: c->rbuf holds the bytes of the current (partial) frames. The header is
+ *     validated from its 24 bytes (sm_proto_parse_header against c->limit: 4096 before
+ *     HELLO, then max_payload) before the buffer grows for the payload, so an oversize
+ *     frame costs nothing. A connection-fatal condition queues one GOAWAY frame carrying
+ *     the status, stops reading, cancels the connection's jobs, and closes after the
+ *     frame is flushed (half-close, then a short lingering read so the peer sees it).
+ *   - Write side: a FIFO of encoded frames (sm_wbuf), flushed when the socket is writable.
+ *     Reading pauses while more than SM_CONN_WQ_HIGH bytes wait (backpressure).
+ *   - In-flight table: request ids of jobs not finished (PROTOCOL.md: a reused id is a
+ *     PROTOCOL_ERROR; CANCEL looks targets up here). A closed connection is freed only
+ *     when its table is empty.
+ */
+#ifndef SM_SRV_CONN_H
+#define SM_SRV_CONN_H
+
+#include <stdatomic.h>
+#include <stddef.h>
+#include <stdint.h>
+
+#include "sm_proto.h"
+#include "sm_srv.h"
+#include "sm_srv_pool.h"
+
+#define SM_CONN_WQ_HIGH (64u << 20)
+
+typedef struct sm_wbuf {
+  struct sm_wbuf *next;
+  size_t len, off;
+  uint8_t data[];
+} sm_wbuf;
+
+sm_wbuf *sm_wbuf_new(size_t len);
+
+enum { SM_H_LISTEN = 1, SM_H_METRICS_LISTEN, SM_H_EVENTFD, SM_H_CONN, SM_H_HTTP };
+enum { SM_CONN_OPEN = 0, SM_CONN_FLUSH_CLOSE, SM_CONN_LINGER, SM_CONN_DEAD };
+
+typedef struct sm_job sm_job;
+
+typedef struct sm_conn {
+  int kind; /* SM_H_CONN or SM_H_HTTP: first member, the epoll data points here */
+  int fd;
+  uint64_t id;
+  char peer[64];
+  int state;
+  uint32_t ev_mask; /* registered epoll events */
+  uint8_t *rbuf;
+  size_t rlen, rcap;
+  sm_wbuf *wq_head, *wq_tail;
+  size_t wq_bytes;
+  int hello_done;
+  uint8_t version;
+  uint32_t limit;        /* current max payload */
+  uint32_t max_response; /* client's limit, 0 = none */
+  int goaway_sent;
+  uint64_t last_active_ns, frame_start_ns, linger_deadline_ns;
+  sm_job **inflight; /* max_inflight slots */
+  uint32_t n_inflight;
+  struct sm_conn *prev, *next;
+} sm_conn;
+
+struct sm_job {
+  sm_pool_job base; /* first member */
+  sm_server *srv;
+  sm_conn *conn;    /* loop thread only */
+  uint32_t rid;
+  uint8_t opcode;
+  uint32_t max_response;
+  uint8_t *buf;     /* owned: holds the frame or the body */
+  const uint8_t *body;
+  uint32_t body_len;
+  _Atomic int cancel; /* 1 CANCEL or disconnect, 2 drain budget spent */
+  int deadline_hit;   /* worker only */
+  uint64_t recv_ns, deadline_ns;
+};
+
+/* A worker's result frames for one job; final = the job is done. */
+typedef struct sm_srv_out {
+  sm_pool_msg base;
+  sm_job *job;
+  sm_wbuf *frames;
+  int final;
+} sm_srv_out;
+
+sm_conn *sm_conn_new(sm_server *s, int fd, int kind, const char *peer);
+/* Reads what is available and handles complete frames. */
+void sm_conn_on_readable(sm_server *s, sm_conn *c);
+/* Flushes the write queue; advances the closing states. */
+void sm_conn_on_writable(sm_server *s, sm_conn *c);
+/* Hands a worker's frames to their connection (or drops them if it is closed). */
+void sm_conn_on_done(sm_server *s, sm_srv_out *o);
+/* Periodic: timeouts, lingering closes, drain. */
+void sm_conn_tick(sm_server *s, uint64_t now);
+/* Connection-fatal: one GOAWAY with status, then close. */
+void sm_conn_fatal(sm_server *s, sm_conn *c, uint16_t status, uint32_t rid, uint32_t retry,
+                   uint32_t detail, const char *msg);
+/* Graceful GOAWAY (status 0) at drain start. */
+void sm_conn_goaway(sm_server *s, sm_conn *c);
+/* Closes the socket now; the struct lives until its jobs are done and sm_conn_sweep
+ * (called by the loop between event batches, so no event of the current batch can
+ * point to freed memory) frees it. */
+void sm_conn_close(sm_server *s, sm_conn *c);
+void sm_conn_sweep(sm_server *s);
+void sm_conn_update_events(sm_server *s, sm_conn *c);
+/* Sets every in-flight job's cancel flag to v. */
+void sm_conn_cancel_all(sm_conn *c, int v);
+/* Queues an error frame (request-level status). */
+void sm_conn_send_error(sm_server *s, sm_conn *c, uint8_t opcode, uint32_t rid,
+                        uint16_t status, uint32_t retry, uint32_t detail, const char *msg);
+
+/* Error payload (PROTOCOL.md 4) into out (12 + msg bytes, msg truncated to 1024). */
+size_t sm_error_payload(uint8_t *out, uint32_t retry, uint32_t detail, const char *msg);
+/* A complete error frame. */
+sm_wbuf *sm_error_frame(uint8_t opcode, uint32_t rid, uint16_t status, uint32_t retry,
+                        uint32_t detail, const char *msg);
+
+#endif

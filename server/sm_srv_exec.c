@@ -1,0 +1,623 @@
+/* Worker-side request execution: see sm_srv_exec.h. */
+#include "sm_srv_exec.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "sm_distance.h"
+#include "sm_proto.h"
+#include "sm_shell.h"
+#include "sm_srv_conn.h"
+#include "sm_srv_log.h"
+#include "sm_srv_metrics.h"
+#include "sm_srv_store.h"
+
+/* The outcome of one operation: an OK payload or an error. */
+typedef struct result {
+  uint16_t status;
+  uint8_t *payload; /* OK: malloc'd response payload, with SM_PROTO_HEADER_LEN bytes of
+                       room before it (payload = base + 24) */
+  uint8_t *base;
+  size_t len;
+  uint32_t retry, detail;
+  char msg[300];
+} result;
+
+static int fail(result *r, uint16_t st, uint32_t detail, const char *fmt, ...)
+    __attribute__((format(printf, 4, 5)));
+static int fail(result *r, uint16_t st, uint32_t detail, const char *fmt, ...) {
+  r->status = st;
+  r->detail = detail;
+  va_list ap;
+  va_start(ap, fmt);
+  vsnprintf(r->msg, sizeof r->msg, fmt, ap);
+  va_end(ap);
+  return -1;
+}
+
+/* Allocates room for a payload of n bytes (plus header room and a CRC trailer slot). */
+static uint8_t *room(result *r, size_t n) {
+  r->base = malloc(SM_PROTO_HEADER_LEN + n + 4);
+  if (!r->base) return NULL;
+  r->payload = r->base + SM_PROTO_HEADER_LEN;
+  r->len = n;
+  return r->payload;
+}
+
+static int cancel_cb(void *ud) {
+  sm_job *j = ud;
+  if (atomic_load_explicit(&j->cancel, memory_order_relaxed)) return 1;
+  if (j->deadline_ns && sm_srv_now_ns() > j->deadline_ns) {
+    j->deadline_hit = 1;
+    return 1;
+  }
+  return 0;
+}
+
+/* Maps a core/store error to a status. */
+static int fail_core(result *r, sm_job *j, int code, const sm_error *err, const char *what) {
+  uint16_t st;
+  switch (code) {
+  case SM_STORE_ENOTFOUND: st = SM_ST_NOT_FOUND; break;
+  case SM_STORE_EIDMISMATCH: st = SM_ST_ID_MISMATCH; break;
+  case SM_ELIMIT: st = SM_ST_LIMIT_EXCEEDED; break;
+  case SM_EFORMAT: st = SM_ST_DECODE_FAILED; break;
+  case SM_EUNSUPPORTED:
+  case SM_EEMPTY:
+  case SM_ENONFINITE: st = SM_ST_MESH_REJECTED; break;
+  case SM_EINVAL:
+  case SM_ERANGE: st = SM_ST_BAD_REQUEST; break;
+  case SM_ECANCELED: st = j->deadline_hit ? SM_ST_DEADLINE : SM_ST_CANCELLED; break;
+  default: st = SM_ST_INTERNAL; break;
+  }
+  if (st == SM_ST_INTERNAL)
+    sm_log("error", "request failed", " rid=%u what=%s code=%d err=\"%s\"", j->rid, what,
+           code, err->msg);
+  return fail(r, st, 0, "%s: %s", what, err->msg[0] ? err->msg : sm_strerror(code));
+}
+
+static uint64_t s_to_us(double s) { return s > 0 ? (uint64_t)(s * 1e6) : 0; }
+
+static sm_store_key default_key(const sm_server *s) {
+  sm_store_key k = {s->cfg.default_k, s->cfg.default_k, SM_SHELL_DEFAULT_ETA};
+  return k;
+}
+
+/* ------------------------------------------------------------------ PUT_SHAPE */
+
+static int op_put(sm_job *j, const uint8_t *p, size_t n, result *r) {
+  sm_proto_put_req q;
+  int rc = sm_proto_dec_put_req(p, n, &q);
+  if (rc) return fail(r, SM_ST_BAD_REQUEST, 0, "PUT_SHAPE: %s", sm_proto_strerror(rc));
+  sm_error err;
+  sm_error_clear(&err);
+  uint32_t nv = 0, nf = 0;
+  int existed = 0;
+  rc = sm_store_put(j->srv->store, q.id, q.draco, q.draco_len, &nv, &nf, &existed, &err);
+  if (rc == SM_ELIMIT)
+    return fail(r, SM_ST_LIMIT_EXCEEDED, j->srv->cfg.max_vertices, "PUT_SHAPE: %s", err.msg);
+  if (rc) return fail_core(r, j, rc, &err, "PUT_SHAPE");
+  char hex[65];
+  sm_hex(q.id, 32, hex);
+  if (!existed) sm_log("info", "shape stored", " id=%s vertices=%u faces=%u bytes=%u", hex, nv, nf, q.draco_len);
+  if (q.flags & SM_PUT_F_PREPARE) {
+    sm_store_key k = default_key(j->srv);
+    sm_prepared *pr = NULL;
+    sm_store_prep_info info;
+    if (sm_store_acquire(j->srv->store, q.id, &k, cancel_cb, j, &pr, &info, &err))
+      sm_log("warn", "prepare after put failed", " id=%s err=\"%s\"", hex, err.msg);
+    sm_store_release(j->srv->store, pr);
+  }
+  sm_proto_put_resp o = {.n_vertices = nv, .n_faces = nf, .flags = existed ? SM_PUT_R_EXISTED : 0};
+  memcpy(o.id, q.id, 32);
+  if (!room(r, 44)) return fail(r, SM_ST_INTERNAL, 0, "out of memory");
+  sm_proto_enc_put_resp(r->payload, 44, NULL, &o);
+  return 0;
+}
+
+/* ------------------------------------------------------------------ PREPARE */
+
+static int op_prepare(sm_job *j, const uint8_t *p, size_t n, result *r) {
+  sm_proto_prepare_req q;
+  int rc = sm_proto_dec_prepare_req(p, n, &q);
+  if (rc) return fail(r, SM_ST_BAD_REQUEST, 0, "PREPARE: %s", sm_proto_strerror(rc));
+  const sm_srv_config *cfg = &j->srv->cfg;
+  sm_store_key k = default_key(j->srv);
+  if (q.k_lb) k.k_lb = q.k_lb;
+  if (q.k_elastic) k.k_el = q.k_elastic;
+  if (q.eta != 0) k.eta = q.eta;
+  if ((uint32_t)k.k_lb > cfg->max_k || (uint32_t)k.k_el > cfg->max_k)
+    return fail(r, SM_ST_LIMIT_EXCEEDED, cfg->max_k, "PREPARE: k above max_k = %u", cfg->max_k);
+  sm_prepared *pr = NULL;
+  sm_store_prep_info info;
+  sm_error err;
+  sm_error_clear(&err);
+  rc = sm_store_acquire(j->srv->store, q.id, &k, cancel_cb, j, &pr, &info, &err);
+  if (rc) return fail_core(r, j, rc, &err, "PREPARE");
+  const sm_shape *s = sm_prepared_shape(pr);
+  sm_proto_prepare_resp o = {
+      .n_vertices = (uint32_t)s->mesh->nv, .n_faces = (uint32_t)s->mesh->nf,
+      .k_lb = (uint16_t)s->lb->k, .k_elastic = (uint16_t)(s->elastic ? s->elastic->k : 0),
+      .flags = info.cached ? SM_PREP_R_CACHED : 0, .t_clean_us = info.t_clean_us,
+      .t_lb_us = info.t_lb_us, .t_elastic_us = info.t_elastic_us, .t_desc_us = info.t_desc_us};
+  sm_store_release(j->srv->store, pr);
+  if (!room(r, 48)) return fail(r, SM_ST_INTERNAL, 0, "out of memory");
+  sm_proto_enc_prepare_resp(r->payload, 48, NULL, &o);
+  return 0;
+}
+
+/* ------------------------------------------------------------------ MATCH / DISTANCE */
+
+/* Input index -> cleaned index (-1 if dropped). */
+static int32_t *inverse_index(const sm_mesh *m) {
+  int32_t *inv = malloc((size_t)(m->n_input ? m->n_input : 1) * sizeof *inv);
+  if (!inv) return NULL;
+  for (int32_t i = 0; i < m->n_input; i++) inv[i] = -1;
+  for (int32_t v = 0; v < m->nv; v++) inv[m->to_input ? m->to_input[v] : v] = v;
+  return inv;
+}
+
+/* Options and bases key from a MATCH/DISTANCE request. */
+static int match_opts(sm_job *j, const sm_proto_match_req *q, sm_match_opts *mo,
+                      sm_store_key *key, result *r) {
+  const sm_srv_config *cfg = &j->srv->cfg;
+  sm_match_opts_default(mo);
+  mo->k1 = cfg->default_k < mo->k1 ? cfg->default_k : mo->k1; /* server default k1 */
+  if (q->basis) mo->basis = q->basis;
+  if (q->init) mo->init = q->init;
+  if (q->k0) mo->k0 = q->k0;
+  if (q->k1) mo->k1 = q->k1;
+  if (q->step) mo->step = q->step;
+  if (q->flags & SM_MATCH_F_SINKHORN_LEVELS) mo->sinkhorn_levels = q->sinkhorn_levels;
+  if (q->flags & SM_MATCH_F_SINGLE_START) mo->multi_start = 0;
+  if (q->flags & SM_MATCH_F_MULTI_START) mo->multi_start = 1;
+  if ((uint32_t)mo->k1 > cfg->max_k)
+    return fail(r, SM_ST_LIMIT_EXCEEDED, cfg->max_k, "k1 = %d above max_k = %u", mo->k1,
+                cfg->max_k);
+  if (mo->k0 > mo->k1)
+    return fail(r, SM_ST_BAD_REQUEST, 0, "k0 = %d > k1 = %d", mo->k0, mo->k1);
+  *key = default_key(j->srv);
+  if (mo->k1 > key->k_lb) key->k_lb = key->k_el = mo->k1;
+  if (q->eta != 0) key->eta = q->eta;
+  mo->cancel = cancel_cb;
+  mo->cancel_ud = j;
+  return 0;
+}
+
+typedef struct pair_ctx {
+  sm_prepared *px, *py;
+  sm_store_prep_info ix, iy;
+  int32_t *lm, *init;
+} pair_ctx;
+
+static void pair_free(sm_job *j, pair_ctx *c) {
+  sm_store_release(j->srv->store, c->px);
+  sm_store_release(j->srv->store, c->py);
+  free(c->lm);
+  free(c->init);
+}
+
+static int acquire_pair(sm_job *j, const uint8_t *x, const uint8_t *y, const sm_store_key *key,
+                        pair_ctx *c, result *r) {
+  sm_error err;
+  sm_error_clear(&err);
+  int rc = sm_store_acquire(j->srv->store, x, key, cancel_cb, j, &c->px, &c->ix, &err);
+  if (rc == SM_STORE_ENOTFOUND) return fail(r, SM_ST_NOT_FOUND, 0, "shape x not stored");
+  if (rc) return fail_core(r, j, rc, &err, "prepare x");
+  rc = sm_store_acquire(j->srv->store, y, key, cancel_cb, j, &c->py, &c->iy, &err);
+  if (rc == SM_STORE_ENOTFOUND) return fail(r, SM_ST_NOT_FOUND, 1, "shape y not stored");
+  if (rc) return fail_core(r, j, rc, &err, "prepare y");
+  return 0;
+}
+
+static uint64_t prep_us(const sm_store_prep_info *i) {
+  return i->t_clean_us + i->t_lb_us + i->t_elastic_us + i->t_desc_us;
+}
+
+/* Landmarks and initial map arrive in input numbering: translate to cleaned indices. */
+static int translate(const sm_proto_match_req *q, const sm_shape *x, const sm_shape *y,
+                     sm_match_opts *mo, pair_ctx *c, result *r) {
+  int rc = 0;
+  int32_t *ix = inverse_index(x->mesh), *iy = inverse_index(y->mesh);
+  if (!ix || !iy) rc = fail(r, SM_ST_INTERNAL, 0, "out of memory");
+  uint32_t nl = q->landmarks.count / 2;
+  if (!rc && nl) {
+    c->lm = malloc((size_t)nl * 2 * sizeof *c->lm);
+    if (!c->lm) rc = fail(r, SM_ST_INTERNAL, 0, "out of memory");
+    for (uint32_t i = 0; !rc && i < nl; i++) {
+      int32_t a = sm_proto_i32_at(&q->landmarks, 2 * i), b = sm_proto_i32_at(&q->landmarks, 2 * i + 1);
+      if (a < 0 || a >= x->mesh->n_input || b < 0 || b >= y->mesh->n_input || ix[a] < 0 || iy[b] < 0)
+        rc = fail(r, SM_ST_BAD_REQUEST, 0, "landmark %u (%d, %d) is not a vertex of both shapes", i, a, b);
+      else {
+        c->lm[2 * i] = ix[a];
+        c->lm[2 * i + 1] = iy[b];
+      }
+    }
+    mo->landmarks = c->lm;
+    mo->nlandmarks = (int)nl;
+  }
+  if (!rc && q->init_map.count) {
+    if (q->init_map.count != (uint32_t)x->mesh->n_input)
+      rc = fail(r, SM_ST_BAD_REQUEST, 0, "init_map has %u entries, x has %d input vertices",
+                q->init_map.count, x->mesh->n_input);
+    else if (!(c->init = malloc((size_t)x->mesh->nv * sizeof *c->init)))
+      rc = fail(r, SM_ST_INTERNAL, 0, "out of memory");
+    for (int32_t v = 0; !rc && v < x->mesh->nv; v++) {
+      int32_t b = sm_proto_i32_at(&q->init_map, (uint32_t)(x->mesh->to_input ? x->mesh->to_input[v] : v));
+      if (b < 0 || b >= y->mesh->n_input || iy[b] < 0)
+        rc = fail(r, SM_ST_BAD_REQUEST, 0, "init_map entry %d is not a vertex of y", v);
+      else
+        c->init[v] = iy[b];
+    }
+    mo->init_map = c->init;
+  }
+  free(ix);
+  free(iy);
+  return rc;
+}
+
+static int op_match(sm_job *j, uint8_t opcode, const uint8_t *p, size_t n, result *r) {
+  sm_proto_match_req q;
+  const char *name = opcode == SM_OP_MATCH ? "MATCH" : "DISTANCE";
+  int rc = sm_proto_dec_match_req(opcode, p, n, &q);
+  if (rc) return fail(r, SM_ST_BAD_REQUEST, 0, "%s: %s", name, sm_proto_strerror(rc));
+  if (q.deadline_ms) j->deadline_ns = j->recv_ns + (uint64_t)q.deadline_ms * 1000000ull;
+  sm_match_opts mo;
+  sm_store_key key;
+  if (match_opts(j, &q, &mo, &key, r)) return -1;
+  int want_dist = opcode == SM_OP_DISTANCE || (q.flags & SM_MATCH_F_WANT_DISTANCE);
+  mo.want_yx = want_dist || (q.flags & SM_MATCH_F_WANT_YX);
+  pair_ctx c;
+  memset(&c, 0, sizeof c);
+  sm_match_result mr;
+  memset(&mr, 0, sizeof mr);
+  rc = acquire_pair(j, q.x, q.y, &key, &c, r);
+  const sm_shape *x = c.px ? sm_prepared_shape(c.px) : NULL;
+  const sm_shape *y = c.py ? sm_prepared_shape(c.py) : NULL;
+  if (!rc) rc = translate(&q, x, y, &mo, &c, r);
+  sm_error err;
+  sm_error_clear(&err);
+  if (!rc) {
+    int e = sm_match(x, y, &mo, &mr, &err);
+    if (e) rc = fail_core(r, j, e, &err, name);
+  }
+  sm_distance_parts d = {0, 0, 0, 0, -1};
+  uint64_t t_dist = 0;
+  if (!rc && want_dist) {
+    uint64_t t0 = sm_srv_now_ns();
+    int e = sm_shape_distance(x, y, mr.T, mr.T_yx, &d, &err);
+    t_dist = (sm_srv_now_ns() - t0) / 1000;
+    if (e) rc = fail_core(r, j, e, &err, "distance");
+  }
+  if (!rc && cancel_cb(j)) {
+    sm_error_set(&err, SM_ECANCELED, "cancelled");
+    rc = fail_core(r, j, SM_ECANCELED, &err, name);
+  }
+  sm_proto_dist pd = {d.total, d.point_xy, d.point_yx, d.spectrum_lb, d.spectrum_elastic};
+  uint64_t t_total = (sm_srv_now_ns() - j->recv_ns) / 1000;
+  if (!rc && opcode == SM_OP_DISTANCE) {
+    sm_proto_distance_resp o = {pd, t_total};
+    if (!room(r, 48)) rc = fail(r, SM_ST_INTERNAL, 0, "out of memory");
+    else sm_proto_enc_distance_resp(r->payload, 48, NULL, &o);
+  } else if (!rc) {
+    uint32_t nx = (uint32_t)x->mesh->n_input;
+    uint32_t ny = (q.flags & SM_MATCH_F_WANT_YX) ? (uint32_t)y->mesh->n_input : 0;
+    uint32_t kC = (q.flags & SM_MATCH_F_WANT_FMAP) ? (uint32_t)mr.kC : 0;
+    uint64_t need = 112 + 4ull * (nx + ny) + 8ull * kC * kC;
+    int32_t *mxy = malloc((size_t)nx * 4 + 4), *myx = malloc((size_t)ny * 4 + 4);
+    if (j->max_response && need > j->max_response)
+      rc = fail(r, SM_ST_RESPONSE_TOO_LARGE, need > UINT32_MAX ? UINT32_MAX : (uint32_t)need,
+                "MATCH response needs %llu bytes, max_response is %u",
+                (unsigned long long)need, j->max_response);
+    else if (need > UINT32_MAX - 64 || !mxy || !myx || !room(r, (size_t)need))
+      rc = fail(r, SM_ST_INTERNAL, 0, "out of memory");
+    if (!rc) {
+      sm_match_to_input(x, y, mr.T, mxy);
+      if (ny) sm_match_to_input(y, x, mr.T_yx, myx);
+      sm_proto_match_resp o;
+      memset(&o, 0, sizeof o);
+      o.init_used = (uint8_t)mr.init_used;
+      o.flags = (mr.flipped ? SM_MATCH_R_FLIPPED : 0) | (want_dist ? SM_MATCH_R_HAS_DISTANCE : 0);
+      o.orientation = mr.orientation;
+      o.dirichlet = mr.dirichlet;
+      if (want_dist) o.dist = pd;
+      o.t_prepare_us = prep_us(&c.ix) + prep_us(&c.iy);
+      o.t_init_us = s_to_us(mr.t_init);
+      o.t_refine_us = s_to_us(mr.t_refine);
+      o.t_distance_us = t_dist;
+      o.t_total_us = t_total;
+      o.map_xy.v = mxy;
+      o.map_xy.count = nx;
+      o.map_yx.v = myx;
+      o.map_yx.count = ny;
+      o.kC = (uint16_t)kC;
+      o.fmap.v = mr.C;
+      o.fmap.count = kC * kC;
+      ptrdiff_t w = sm_proto_enc_match_resp(r->payload, r->len, NULL, &o);
+      if (w != (ptrdiff_t)need) rc = fail(r, SM_ST_INTERNAL, 0, "MATCH: encoder returned %td", w);
+    }
+    free(mxy);
+    free(myx);
+  }
+  sm_match_result_free(&mr);
+  pair_free(j, &c);
+  return rc;
+}
+
+/* ------------------------------------------------------------------ QUERY */
+
+/* The spectral term of core/sm_distance.c (centered log positive eigenvalues, K <= 50). */
+static double spectrum_term(const sm_basis *a, const sm_basis *b) {
+  int ia = 0, ib = 0;
+  double top_a = fabs(a->evals[a->k - 1]), top_b = fabs(b->evals[b->k - 1]);
+  while (ia < a->k && a->evals[ia] <= 1e-9 * top_a) ia++;
+  while (ib < b->k && b->evals[ib] <= 1e-9 * top_b) ib++;
+  int K = a->k - ia < b->k - ib ? a->k - ia : b->k - ib;
+  if (K > 50) K = 50;
+  if (K < 2) return 0.0;
+  double ma = 0, mb = 0, ab = 0, aa = 0, bb = 0;
+  for (int i = 0; i < K; i++) {
+    ma += log(a->evals[ia + i]) / K;
+    mb += log(b->evals[ib + i]) / K;
+  }
+  for (int i = 0; i < K; i++) {
+    double u = log(a->evals[ia + i]) - ma, v = log(b->evals[ib + i]) - mb;
+    ab += u * v;
+    aa += u * u;
+    bb += v * v;
+  }
+  if (aa <= 0 || bb <= 0) return 1.0;
+  double cs = ab / sqrt(aa * bb);
+  return 1.0 - (cs > 1 ? 1 : cs < -1 ? -1 : cs);
+}
+
+static int hit_cmp(const void *a, const void *b) {
+  const sm_proto_hit *x = a, *y = b;
+  if (x->distance < y->distance) return -1;
+  if (x->distance > y->distance) return 1;
+  return memcmp(x->id, y->id, 32);
+}
+
+static int op_query(sm_job *j, const uint8_t *p, size_t n, result *r) {
+  sm_proto_query_req q;
+  int rc = sm_proto_dec_query_req(p, n, &q);
+  if (rc) return fail(r, SM_ST_BAD_REQUEST, 0, "QUERY: %s", sm_proto_strerror(rc));
+  const sm_srv_config *cfg = &j->srv->cfg;
+  if (q.k > cfg->max_query_k)
+    return fail(r, SM_ST_LIMIT_EXCEEDED, cfg->max_query_k, "QUERY: k above max_query_k");
+  if (q.deadline_ms) j->deadline_ns = j->recv_ns + (uint64_t)q.deadline_ms * 1000000ull;
+  uint8_t *ids = NULL;
+  size_t nid = 0;
+  if (q.n_candidates) {
+    ids = malloc((size_t)q.n_candidates * 32);
+    if (ids) memcpy(ids, q.candidates, (size_t)q.n_candidates * 32);
+    nid = q.n_candidates;
+  } else if (sm_store_list(j->srv->store, &ids, &nid)) {
+    ids = NULL;
+  }
+  if (!ids) return fail(r, SM_ST_INTERNAL, 0, "out of memory");
+  sm_store_key key = default_key(j->srv);
+  sm_match_opts mo;
+  sm_match_opts_default(&mo);
+  mo.k1 = key.k_lb < mo.k1 ? key.k_lb : mo.k1;
+  mo.want_yx = 1;
+  mo.cancel = cancel_cb;
+  mo.cancel_ud = j;
+  sm_error err;
+  sm_error_clear(&err);
+  sm_prepared *px = NULL;
+  sm_store_prep_info info;
+  rc = sm_store_acquire(j->srv->store, q.id, &key, cancel_cb, j, &px, &info, &err);
+  if (rc == SM_STORE_ENOTFOUND) rc = fail(r, SM_ST_NOT_FOUND, 0, "QUERY: shape not stored");
+  else if (rc) rc = fail_core(r, j, rc, &err, "QUERY");
+  sm_proto_hit *hits = rc ? NULL : calloc(nid ? nid : 1, sizeof *hits);
+  if (!rc && !hits) rc = fail(r, SM_ST_INTERNAL, 0, "out of memory");
+  uint32_t considered = 0;
+  for (size_t i = 0; !rc && i < nid; i++) {
+    const uint8_t *cid = ids + 32 * i;
+    if (!memcmp(cid, q.id, 32)) continue;
+    if (cancel_cb(j)) {
+      sm_error_set(&err, SM_ECANCELED, "cancelled");
+      rc = fail_core(r, j, SM_ECANCELED, &err, "QUERY");
+      break;
+    }
+    sm_prepared *py = NULL;
+    sm_store_prep_info iy;
+    int e = sm_store_acquire(j->srv->store, cid, &key, cancel_cb, j, &py, &iy, &err);
+    if (e == SM_STORE_ENOTFOUND) continue;
+    if (e) {
+      rc = fail_core(r, j, e, &err, "QUERY candidate");
+      break;
+    }
+    const sm_shape *x = sm_prepared_shape(px), *y = sm_prepared_shape(py);
+    double dist;
+    if (q.mode == SM_QUERY_SPECTRAL) {
+      double t = spectrum_term(x->lb, y->lb);
+      int nt = 1;
+      if (x->elastic && y->elastic) t += spectrum_term(x->elastic, y->elastic), nt++;
+      dist = t / nt;
+    } else {
+      sm_match_result mr;
+      memset(&mr, 0, sizeof mr);
+      sm_distance_parts d;
+      e = sm_match(x, y, &mo, &mr, &err);
+      if (!e) e = sm_shape_distance(x, y, mr.T, mr.T_yx, &d, &err);
+      sm_match_result_free(&mr);
+      if (e) {
+        sm_store_release(j->srv->store, py);
+        rc = fail_core(r, j, e, &err, "QUERY match");
+        break;
+      }
+      dist = d.total;
+    }
+    sm_store_release(j->srv->store, py);
+    memcpy(hits[considered].id, cid, 32);
+    hits[considered].distance = dist;
+    considered++;
+  }
+  sm_store_release(j->srv->store, px);
+  free(ids);
+  if (!rc) {
+    qsort(hits, considered, sizeof *hits, hit_cmp);
+    uint32_t count = considered < q.k ? considered : q.k;
+    sm_proto_query_resp o = {.n_considered = considered,
+                             .t_total_us = (sm_srv_now_ns() - j->recv_ns) / 1000,
+                             .v = hits, .count = count};
+    size_t need = 16 + 40 * (size_t)count;
+    if (j->max_response && need > j->max_response)
+      rc = fail(r, SM_ST_RESPONSE_TOO_LARGE, (uint32_t)need, "QUERY response too large");
+    else if (!room(r, need))
+      rc = fail(r, SM_ST_INTERNAL, 0, "out of memory");
+    else
+      sm_proto_enc_query_resp(r->payload, need, NULL, &o);
+  }
+  free(hits);
+  return rc;
+}
+
+/* ------------------------------------------------------------------ dispatch */
+
+static int op_ping(const uint8_t *p, size_t n, result *r) {
+  sm_proto_ping q;
+  int rc = sm_proto_dec_ping(p, n, &q);
+  if (rc) return fail(r, SM_ST_BAD_REQUEST, 0, "PING: %s", sm_proto_strerror(rc));
+  if (!room(r, 8)) return fail(r, SM_ST_INTERNAL, 0, "out of memory");
+  sm_proto_enc_ping(r->payload, 8, NULL, 1, &q);
+  return 0;
+}
+
+static int op_has(sm_job *j, const uint8_t *p, size_t n, result *r) {
+  sm_proto_id_req q;
+  int rc = sm_proto_dec_id_req(p, n, &q);
+  if (rc) return fail(r, SM_ST_BAD_REQUEST, 0, "HAS_SHAPE: %s", sm_proto_strerror(rc));
+  sm_proto_has_resp o = {0, 0, 0};
+  int prepared = 0;
+  if (sm_store_has(j->srv->store, q.id, &o.n_vertices, &o.n_faces, &prepared))
+    o.flags = SM_HAS_STORED | (prepared ? SM_HAS_PREPARED : 0);
+  if (!room(r, 12)) return fail(r, SM_ST_INTERNAL, 0, "out of memory");
+  sm_proto_enc_has_resp(r->payload, 12, NULL, &o);
+  return 0;
+}
+
+static int run_op(sm_job *j, uint8_t op, const uint8_t *p, size_t n, result *r) {
+  if (cancel_cb(j)) {
+    sm_error e;
+    sm_error_set(&e, SM_ECANCELED, "cancelled before it started");
+    return fail_core(r, j, SM_ECANCELED, &e, sm_proto_op_name(op));
+  }
+  switch (op) {
+  case SM_OP_PING: return op_ping(p, n, r);
+  case SM_OP_HAS_SHAPE: return op_has(j, p, n, r);
+  case SM_OP_PUT_SHAPE: return op_put(j, p, n, r);
+  case SM_OP_PREPARE: return op_prepare(j, p, n, r);
+  case SM_OP_MATCH:
+  case SM_OP_DISTANCE: return op_match(j, op, p, n, r);
+  case SM_OP_QUERY: return op_query(j, p, n, r);
+  default: return fail(r, SM_ST_BAD_REQUEST, 0, "opcode %u not allowed here", op);
+  }
+}
+
+static void post(sm_job *j, sm_wbuf *frames, int final) {
+  sm_srv_out *o = calloc(1, sizeof *o);
+  if (!o) abort(); /* the loop must learn that the job ended; nothing sane remains */
+  o->job = j;
+  o->frames = frames;
+  o->final = final;
+  sm_pool_post(j->srv->pool, &o->base);
+}
+
+/* A top-level response frame from a result. */
+static sm_wbuf *result_frame(sm_job *j, uint8_t opcode, result *r) {
+  if (r->status) {
+    sm_met_add(&sm_met.errors, 1);
+    if (r->status == SM_ST_CANCELLED) sm_met_add(&sm_met.cancelled, 1);
+    return sm_error_frame(opcode, j->rid, r->status, r->retry, r->detail, r->msg);
+  }
+  sm_wbuf *w = sm_wbuf_new(SM_PROTO_HEADER_LEN + r->len);
+  if (!w) return sm_error_frame(opcode, j->rid, SM_ST_INTERNAL, 0, 0, "out of memory");
+  sm_proto_header h = {SM_PROTO_VERSION, opcode, SM_PROTO_F_RESPONSE, j->rid, 0, (uint32_t)r->len};
+  sm_proto_write_header(w->data, &h);
+  memcpy(w->data + SM_PROTO_HEADER_LEN, r->payload, r->len);
+  return w;
+}
+
+static void run_batch(sm_job *j) {
+  const sm_srv_config *cfg = &j->srv->cfg;
+  sm_proto_batch_req b;
+  result r;
+  memset(&r, 0, sizeof r);
+  int rc = sm_proto_dec_batch_req(j->body, j->body_len, &b);
+  if (rc) {
+    /* A count over the limit is LIMIT_EXCEEDED even when the decoder also dislikes it. */
+    fail(&r, SM_ST_BAD_REQUEST, 0, "BATCH: %s", sm_proto_strerror(rc));
+  } else if (b.count > cfg->max_batch_items) {
+    fail(&r, SM_ST_LIMIT_EXCEEDED, cfg->max_batch_items, "BATCH: %u items, max_batch_items is %u",
+         b.count, cfg->max_batch_items);
+  }
+  if (r.status) {
+    post(j, result_frame(j, SM_OP_BATCH, &r), 1);
+    return;
+  }
+  size_t pos = 0;
+  sm_proto_batch_item it;
+  uint32_t idx = 0, n_ok = 0;
+  while (sm_proto_batch_next(&b, &pos, &it)) {
+    result ir;
+    memset(&ir, 0, sizeof ir);
+    run_op(j, it.opcode, it.payload, it.len, &ir);
+    uint8_t errp[12 + SM_PROTO_MAX_MSG];
+    sm_proto_batch_item_resp ip = {idx, it.opcode, NULL, 0};
+    if (ir.status) {
+      ip.len = (uint32_t)sm_error_payload(errp, ir.retry, ir.detail, ir.msg);
+      ip.payload = errp;
+    } else {
+      ip.payload = ir.payload;
+      ip.len = (uint32_t)ir.len;
+      n_ok++;
+    }
+    if (!ir.status && j->max_response && 8ull + ip.len > j->max_response) {
+      fail(&ir, SM_ST_RESPONSE_TOO_LARGE, (uint32_t)(8 + ip.len), "item response too large");
+      ip.len = (uint32_t)sm_error_payload(errp, 0, ir.detail, ir.msg);
+      ip.payload = errp;
+      n_ok--;
+    }
+    sm_proto_header h = {SM_PROTO_VERSION, SM_OP_BATCH, SM_PROTO_F_RESPONSE, j->rid, ir.status, 0};
+    size_t cap = SM_PROTO_HEADER_LEN + 8 + ip.len + 4;
+    sm_wbuf *w = sm_wbuf_new(cap);
+    if (w) {
+      ptrdiff_t got = sm_proto_enc_batch_item_resp(w->data, cap, &h, &ip);
+      if (got <= 0 || (size_t)got > cap) {
+        free(w);
+        w = NULL;
+      } else {
+        w->len = (size_t)got;
+      }
+    }
+    if (w) post(j, w, 0);
+    free(ir.base);
+    idx++;
+  }
+  sm_proto_batch_done d = {idx, n_ok};
+  sm_proto_header h = {SM_PROTO_VERSION, SM_OP_BATCH, SM_PROTO_F_RESPONSE, j->rid, 0, 0};
+  sm_wbuf *w = sm_wbuf_new(SM_PROTO_HEADER_LEN + 8);
+  if (w) sm_proto_enc_batch_done(w->data, w->len, &h, &d);
+  post(j, w, 1);
+}
+
+void sm_exec_run(sm_pool_job *pj) {
+  sm_job *j = (sm_job *)pj;
+  uint64_t t0 = sm_srv_now_ns();
+  if (j->opcode == SM_OP_BATCH) {
+    run_batch(j);
+  } else {
+    result r;
+    memset(&r, 0, sizeof r);
+    run_op(j, j->opcode, j->body, j->body_len, &r);
+    sm_wbuf *w = result_frame(j, j->opcode, &r);
+    free(r.base);
+    post(j, w, 1);
+  }
+  sm_met_latency((sm_srv_now_ns() - t0) / 1000);
+}

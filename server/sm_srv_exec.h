@@ -1,0 +1,15 @@
+/* sm_srv_exec: executes a queued request on a worker thread (PUT_SHAPE, PREPARE, MATCH,
+ * DISTANCE, QUERY, BATCH) and posts its response frame(s) to the loop.
+ *
+ * Contract: sm_exec_run is the pool's run function for an sm_job. It reads only the job,
+ * the configuration and the store; the job's cancel flag and deadline are polled by the
+ * core through the cancel callback (SM_ECANCELED -> CANCELLED or DEADLINE). Each request
+ * gets exactly one final sm_srv_out; BATCH posts one per item first (flag MORE). */
+#ifndef SM_SRV_EXEC_H
+#define SM_SRV_EXEC_H
+
+#include "sm_srv_pool.h"
+
+void sm_exec_run(sm_pool_job *j);
+
+#endif

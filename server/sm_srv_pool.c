@@ -1,0 +1,142 @@
+#include "sm_srv_pool.h"
+
+#include <cblas.h> /* OpenBLAS: openblas_set_num_threads */
+#include <errno.h>
+#include <pthread.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <sys/eventfd.h>
+#include <unistd.h>
+
+#include "sm_srv_metrics.h"
+
+struct sm_pool {
+  pthread_mutex_t mu;
+  pthread_cond_t cv;
+  sm_pool_job *head, *tail;
+  int depth, cap, stop;
+  pthread_t *th;
+  int nth;
+  pthread_mutex_t done_mu;
+  sm_pool_msg *dhead, *dtail;
+  int efd;
+};
+
+static void *worker(void *arg) {
+  sm_pool *p = arg;
+  openblas_set_num_threads(1);
+  for (;;) {
+    pthread_mutex_lock(&p->mu);
+    while (!p->head && !p->stop) pthread_cond_wait(&p->cv, &p->mu);
+    if (!p->head) {
+      pthread_mutex_unlock(&p->mu);
+      return NULL;
+    }
+    sm_pool_job *j = p->head;
+    p->head = j->qnext;
+    if (!p->head) p->tail = NULL;
+    p->depth--;
+    sm_met_sub(&sm_met.queue_depth, 1);
+    pthread_mutex_unlock(&p->mu);
+    j->qnext = NULL;
+    j->run(j);
+  }
+}
+
+int sm_pool_create(int nthreads, int queue_cap, sm_pool **out) {
+  *out = NULL;
+  sm_pool *p = calloc(1, sizeof *p);
+  if (!p) return -ENOMEM;
+  p->cap = queue_cap;
+  p->efd = eventfd(0, EFD_NONBLOCK | EFD_CLOEXEC);
+  if (p->efd < 0) {
+    free(p);
+    return -errno;
+  }
+  pthread_mutex_init(&p->mu, NULL);
+  pthread_cond_init(&p->cv, NULL);
+  pthread_mutex_init(&p->done_mu, NULL);
+  p->th = calloc((size_t)nthreads, sizeof *p->th);
+  if (!p->th) {
+    sm_pool_destroy(p);
+    return -ENOMEM;
+  }
+  for (int i = 0; i < nthreads; i++) {
+    if (pthread_create(&p->th[i], NULL, worker, p)) {
+      sm_pool_destroy(p);
+      return -EAGAIN;
+    }
+    p->nth++;
+  }
+  *out = p;
+  return 0;
+}
+
+void sm_pool_destroy(sm_pool *p) {
+  if (!p) return;
+  pthread_mutex_lock(&p->mu);
+  p->stop = 1;
+  pthread_cond_broadcast(&p->cv);
+  pthread_mutex_unlock(&p->mu);
+  for (int i = 0; i < p->nth; i++) pthread_join(p->th[i], NULL);
+  free(p->th);
+  close(p->efd);
+  pthread_mutex_destroy(&p->mu);
+  pthread_cond_destroy(&p->cv);
+  pthread_mutex_destroy(&p->done_mu);
+  free(p);
+}
+
+int sm_pool_submit(sm_pool *p, sm_pool_job *j) {
+  pthread_mutex_lock(&p->mu);
+  if (p->stop) {
+    pthread_mutex_unlock(&p->mu);
+    return SM_POOL_ESTOPPED;
+  }
+  if (p->depth >= p->cap) {
+    pthread_mutex_unlock(&p->mu);
+    return SM_POOL_EFULL;
+  }
+  j->qnext = NULL;
+  if (p->tail) p->tail->qnext = j;
+  else p->head = j;
+  p->tail = j;
+  p->depth++;
+  sm_met_add(&sm_met.queue_depth, 1);
+  pthread_cond_signal(&p->cv);
+  pthread_mutex_unlock(&p->mu);
+  return 0;
+}
+
+int sm_pool_fd(const sm_pool *p) { return p->efd; }
+
+void sm_pool_post(sm_pool *p, sm_pool_msg *m) {
+  m->next = NULL;
+  pthread_mutex_lock(&p->done_mu);
+  if (p->dtail) p->dtail->next = m;
+  else p->dhead = m;
+  p->dtail = m;
+  pthread_mutex_unlock(&p->done_mu);
+  uint64_t one = 1;
+  ssize_t w;
+  do w = write(p->efd, &one, sizeof one);
+  while (w < 0 && errno == EINTR); /* EAGAIN: counter saturated, already readable */
+}
+
+sm_pool_msg *sm_pool_take(sm_pool *p) {
+  uint64_t v;
+  ssize_t r = read(p->efd, &v, sizeof v);
+  (void)r;
+  pthread_mutex_lock(&p->done_mu);
+  sm_pool_msg *m = p->dhead;
+  p->dhead = p->dtail = NULL;
+  pthread_mutex_unlock(&p->done_mu);
+  return m;
+}
+
+int sm_pool_queue_depth(sm_pool *p) {
+  pthread_mutex_lock(&p->mu);
+  int d = p->depth;
+  pthread_mutex_unlock(&p->mu);
+  return d;
+}

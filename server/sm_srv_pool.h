@@ -1,0 +1,46 @@
+/* sm_srv_pool: a fixed pool of worker threads, a bounded job queue, and a completion list
+ * handed back to the event loop through an eventfd.
+ *
+ * Contract
+ *   - Jobs are caller-defined structs embedding sm_pool_job (first member); the pool only
+ *     links them and calls job->run(job) on a worker. sm_pool_submit never blocks: it
+ *     returns SM_POOL_EFULL when queue_cap jobs are already waiting (the caller answers
+ *     BUSY). Ownership of a submitted job passes to run(); run() hands its results back
+ *     with sm_pool_post.
+ *   - sm_pool_post(msg) may be called from any thread; it appends msg to the done list and
+ *     makes the eventfd (sm_pool_fd) readable. The loop thread calls sm_pool_take to get
+ *     the whole list in posting order (FIFO), after reading the eventfd.
+ *   - Each worker calls openblas_set_num_threads(1) once at start: the pool is the only
+ *     parallelism, so BLAS must not oversubscribe the cores.
+ *   - sm_pool_destroy stops the workers after the queue is empty (queued jobs still run:
+ *     the caller cancels them first if it wants them short) and joins them.
+ *   Locks: mu (queue) and done_mu (completion list); never nested.
+ */
+#ifndef SM_SRV_POOL_H
+#define SM_SRV_POOL_H
+
+#include <stddef.h>
+
+enum { SM_POOL_EFULL = -1, SM_POOL_ESTOPPED = -2 };
+
+typedef struct sm_pool_job {
+  void (*run)(struct sm_pool_job *j);
+  struct sm_pool_job *qnext;
+} sm_pool_job;
+
+typedef struct sm_pool_msg {
+  struct sm_pool_msg *next;
+} sm_pool_msg;
+
+typedef struct sm_pool sm_pool;
+
+int sm_pool_create(int nthreads, int queue_cap, sm_pool **out);
+void sm_pool_destroy(sm_pool *p);
+int sm_pool_submit(sm_pool *p, sm_pool_job *j);
+int sm_pool_fd(const sm_pool *p);
+void sm_pool_post(sm_pool *p, sm_pool_msg *m);
+/* Reads the eventfd counter and returns the done list (FIFO), or NULL. */
+sm_pool_msg *sm_pool_take(sm_pool *p);
+int sm_pool_queue_depth(sm_pool *p);
+
+#endif

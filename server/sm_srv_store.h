@@ -1,0 +1,92 @@
+/* sm_srv_store: the shape store (content-addressed Draco files) and the cache of prepared
+ * shapes (cleaned mesh + bases + descriptors), with single-flight preparation.
+ *
+ * DESIGN
+ *   Disk (the data directory; everything survives a restart):
+ *     shapes/<id-hex>.drc                          the Draco bytes as uploaded
+ *     bases/<id-hex>.<lb|el>.k<k>.eta<eta-bits-hex>.v<format>.smb
+ *                                                  one computed basis (sm_basis_save:
+ *                                                  versioned, XXH3-checksummed)
+ *     Every file is written to a unique temp name in the same directory, fsynced, renamed
+ *     over its final name and the directory fsynced, so a crash leaves either the old
+ *     state or the complete new file. At startup shapes/ is scanned: each file's SHA-256
+ *     must equal its name and it must decode, else it is deleted (counted shapes_corrupt).
+ *     A basis file is verified when loaded (magic, version, checksum, sizes, kind, k, eta
+ *     and the XXH3 hash of the cleaned mesh it belongs to); a file that fails is deleted,
+ *     recomputed and rewritten (counted bases_corrupt), never served.
+ *   Memory: an index of every stored shape (id, counts, size) and an LRU cache of
+ *     prepared shapes keyed by (id, k_lb, k_elastic, eta), bounded by cache_bytes
+ *     (approximate bytes of the arrays). Evicting only drops the cache's reference: a
+ *     worker holding a prepared shape (sm_store_acquire) keeps it until sm_store_release.
+ *   Single-flight: a missing variant is inserted in state COMPUTING by the first worker,
+ *     which computes it without the lock; later requesters wait on store->cv (timed waits
+ *     so that their own cancel flag is honoured) and are counted in singleflight_waits.
+ *     If the computation fails or is cancelled the variant is removed and one waiter
+ *     retries.
+ *
+ * Contract: every function is thread-safe (one mutex, never held during computation or
+ *   file I/O except the unlinks of DROP). Ids are 32 raw bytes. Returns 0 or a negative
+ *   SM_E* code (sm_error.h) or SM_STORE_ENOTFOUND / SM_STORE_EIDMISMATCH, with a message.
+ */
+#ifndef SM_SRV_STORE_H
+#define SM_SRV_STORE_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#include "sm_error.h"
+#include "sm_match.h"
+#include "sm_mesh.h"
+
+enum { SM_STORE_ENOTFOUND = -100, SM_STORE_EIDMISMATCH = -101 };
+
+typedef struct sm_store sm_store;
+typedef struct sm_prepared sm_prepared;
+
+typedef struct sm_store_key {
+  int k_lb, k_el; /* k_el 0 = no elastic basis */
+  double eta;
+} sm_store_key;
+
+typedef struct sm_store_prep_info {
+  int cached;                 /* 1: nothing was computed or loaded by this call */
+  int waited;                 /* 1: waited for another worker's computation */
+  uint64_t t_clean_us, t_lb_us, t_elastic_us, t_desc_us; /* spent by this call */
+  int bases_loaded, bases_computed;
+} sm_store_prep_info;
+
+typedef struct sm_store_stats {
+  uint64_t shapes, shapes_bytes, bases_cached, cache_bytes;
+  uint64_t cache_hits, cache_misses, evictions, singleflight_waits, prepares;
+  uint64_t bases_computed, bases_loaded, bases_corrupt, shapes_corrupt;
+} sm_store_stats;
+
+/* Opens (creating) dir, scans shapes/. lim bounds decoding. default_key: what
+ * HAS_SHAPE reports as PREPARED. */
+int sm_store_open(const char *dir, uint64_t cache_bytes, const sm_limits *lim,
+                  const sm_store_key *default_key, sm_store **out, sm_error *err);
+void sm_store_close(sm_store *st);
+
+/* Verifies SHA-256(draco) == id, decodes (limits before allocation), checks that cleaning
+ * leaves a mesh, writes the file. *existed = 1 if it was already stored. */
+int sm_store_put(sm_store *st, const uint8_t id[32], const uint8_t *draco, size_t len,
+                 uint32_t *nv, uint32_t *nf, int *existed, sm_error *err);
+/* 1 stored, 0 not. *prepared: default variant cached in memory or on disk. */
+int sm_store_has(sm_store *st, const uint8_t id[32], uint32_t *nv, uint32_t *nf,
+                 int *prepared);
+/* 0 or SM_STORE_ENOTFOUND. Removes files and cached variants. */
+int sm_store_drop(sm_store *st, const uint8_t id[32]);
+
+/* The prepared shape for (id, key), computing it (single-flight) when missing. cancel(ud)
+ * is polled while waiting and passed to the core while computing. */
+int sm_store_acquire(sm_store *st, const uint8_t id[32], const sm_store_key *key,
+                     int (*cancel)(void *), void *ud, sm_prepared **out,
+                     sm_store_prep_info *info, sm_error *err);
+void sm_store_release(sm_store *st, sm_prepared *p);
+const sm_shape *sm_prepared_shape(const sm_prepared *p);
+
+/* Snapshot of every stored id (malloc'd, 32 bytes each). */
+int sm_store_list(sm_store *st, uint8_t **ids, size_t *n);
+void sm_store_get_stats(sm_store *st, sm_store_stats *out);
+
+#endif
