@@ -363,8 +363,8 @@ static int refine(const sm_shape *x, const sm_shape *y, const sm_match_opts *o, 
   return sm_zoomout(pairs, np, &zo, T, T, Cs, T_yx, NULL, err);
 }
 
-/* One full attempt: coarse map with the given orientation sign, initial map, refinement. */
-static int attempt(const sm_shape *x, const sm_shape *y, const sm_match_opts *o, int sign,
+/* One full attempt: orientation-preserving coarse map, initial map, refinement. */
+static int attempt(const sm_shape *x, const sm_shape *y, const sm_match_opts *o,
                    sm_match_result *r, sm_error *err) {
   int k = o->coarse_k;
   double t0 = sm_now();
@@ -374,7 +374,7 @@ static int attempt(const sm_shape *x, const sm_shape *y, const sm_match_opts *o,
   } else {
     double *C0 = malloc((size_t)k * k * sizeof *C0);
     if (!C0) return sm_error_set(err, SM_ENOMEM, "match: out of memory");
-    rc = coarse_map(x, y, o, sign, C0, err);
+    rc = coarse_map(x, y, o, +1, C0, err);
     if (!rc) rc = initial_map(x, y, o, C0, r->T, err);
     free(C0);
   }
@@ -472,7 +472,7 @@ typedef struct start_job {
 
 static void *run_start(void *arg) {
   start_job *j = arg;
-  j->rc = attempt(j->x, j->y, &j->o, +1, &j->r, &j->err);
+  j->rc = attempt(j->x, j->y, &j->o, &j->r, &j->err);
   return NULL;
 }
 
@@ -490,7 +490,7 @@ static int multi_start(const sm_shape *x, const sm_shape *y, const sm_match_opts
   j->o.init = o->init == SM_INIT_NN ? SM_INIT_SINKHORN : SM_INIT_NN;
   pthread_t th;
   int threaded = pthread_create(&th, NULL, run_start, j) == 0;
-  int rc = attempt(x, y, o, +1, res, err);
+  int rc = attempt(x, y, o, res, err);
   if (threaded) pthread_join(th, NULL);
   else run_start(j);
   if (!rc && j->rc) {
@@ -516,7 +516,7 @@ int sm_match(const sm_shape *x, const sm_shape *y, const sm_match_opts *o,
     return sm_error_set(err, SM_ENOMEM, "match: out of memory");
   }
   if (o->multi_start && !o->init_map) rc = multi_start(x, y, o, res, err);
-  else rc = attempt(x, y, o, +1, res, err);
+  else rc = attempt(x, y, o, res, err);
   if (!rc && o->orientation_fix && !o->init_map && res->orientation < 0)
     rc = fix_orientation(x, y, o, res, err);
   if (rc) sm_match_result_free(res);
