@@ -787,7 +787,7 @@ static int cmd_query(int argc, char **argv, const char *addr) {
     else printf("%.6f %s\n", h[i].distance, hex);
   }
   if (!rc && json) printf("%s]\n", n ? "" : "[");
-  if (!rc) fprintf(stderr, "%u of %u stored shapes considered\n", n, considered);
+  if (!rc) fprintf(stderr, "%u hits; %u stored shapes considered\n", n, considered);
   free(h);
   sm_client_close(c);
   return rc;
@@ -1085,9 +1085,7 @@ static int cmd_batch(int argc, char **argv, const char *addr) {
     b.pb[i] = words.v[2 * i + 1];
     if (ra->state < 0 || rb->state < 0) {
       const shape_ref *bad = ra->state < 0 ? ra : rb;
-      char msg[600];
-      snprintf(msg, sizeof msg, "%s: %s", bad->arg, bad->err.msg);
-      batch_fail(&b, i, "UPLOAD_FAILED", msg);
+      batch_fail(&b, i, "UPLOAD_FAILED", bad->err.msg);
       continue;
     }
     sm_client_req *q = &reqs[nreq];
