@@ -68,7 +68,7 @@ static int usage(FILE *f) {
           "\n"
           "server commands (--server HOST:PORT, or $SHAPEMATCH_SERVER; $SHAPEMATCH_TOKEN is\n"
           "sent as the HELLO token). A and B are mesh files, uploaded as needed (any\n"
-          "readable format; Draco-encoded losslessly, vertex order kept, so maps use the\n"
+          "readable format; Draco-encoded unquantized (float32), vertex order kept, so maps use the\n"
           "file's numbering), or the 64-hex ids of shapes already stored:\n"
           "  put FILE... [--prepare]\n"
           "        upload shapes; prints 'ID FILE' per shape (ID = SHA-256 of the Draco bytes)\n"
