@@ -1,0 +1,794 @@
+/* test_server: starts the real shapematchd binary (SM_SERVER_BIN) on an ephemeral port
+ * with a temporary data directory and talks to it over TCP with the protocol codec:
+ * HELLO, PING, STATS, PUT_SHAPE (real Draco files, or synthetic blobs when ../shared/data
+ * is absent), HAS/DROP, MATCH (map equal to a local sm_match on the same meshes),
+ * DISTANCE, BATCH, CANCEL, a corrupt Draco upload, an oversize frame header, a trickling
+ * client (TIMEOUT), an abrupt disconnect mid-request, SIGTERM (exit 0), a restart that
+ * loads the bases from disk (nothing recomputed), and a corrupted basis file (detected,
+ * recomputed, same result). Every socket read has a timeout; alarm() bounds the whole. */
+#include <arpa/inet.h>
+#include <cblas.h>
+#include <dirent.h>
+#include <errno.h>
+#include <fcntl.h>
+#include <netinet/in.h>
+#include <poll.h>
+#include <signal.h>
+#include <stdint.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/socket.h>
+#include <sys/stat.h>
+#include <sys/time.h>
+#include <sys/wait.h>
+#include <time.h>
+#include <unistd.h>
+
+#include "sm_distance.h"
+#include "sm_match.h"
+#include "sm_meshio.h"
+#include "sm_proto.h"
+#include "sm_sha256.h"
+#include "sm_synth.h"
+#include "sm_test.h"
+
+#ifndef SM_SERVER_BIN
+#error "SM_SERVER_BIN must name the shapematchd binary"
+#endif
+
+#define K 30
+#define IO_TIMEOUT_S 240
+
+typedef struct shape {
+  uint8_t *drc;
+  size_t len;
+  uint8_t id[32];
+  sm_mesh *mesh; /* decoded */
+} shape;
+
+static char g_dir[512], g_log[600];
+static pid_t g_pid = -1;
+static uint32_t g_rid = 1;
+
+/* ------------------------------------------------------------------ daemon */
+
+static void sleep_us(long us) {
+  struct timespec ts = {us / 1000000, (us % 1000000) * 1000};
+  while (nanosleep(&ts, &ts) && errno == EINTR) {
+  }
+}
+
+static void kill_daemon(void) {
+  if (g_pid > 0) {
+    kill(g_pid, SIGKILL);
+    waitpid(g_pid, NULL, 0);
+    g_pid = -1;
+  }
+}
+
+static void on_alarm(int sig) {
+  (void)sig;
+  static const char m[] = "test_server: global timeout\n";
+  ssize_t w = write(2, m, sizeof m - 1);
+  (void)w;
+  if (g_pid > 0) kill(g_pid, SIGKILL);
+  _exit(1);
+}
+
+static int start_daemon(const char *extra) {
+  snprintf(g_log, sizeof g_log, "%s/daemon.log", g_dir);
+  char datadir[600];
+  snprintf(datadir, sizeof datadir, "%s/data", g_dir);
+  unlink(g_log); /* else the previous run's `listening` line could be read */
+  pid_t pid = fork();
+  REQUIRE(pid >= 0);
+  if (pid == 0) {
+    int fd = open(g_log, O_WRONLY | O_CREAT | O_TRUNC, 0600);
+    if (fd < 0) _exit(127);
+    dup2(fd, 2);
+    close(fd);
+    int nul = open("/dev/null", O_RDWR);
+    if (nul >= 0) {
+      dup2(nul, 0);
+      dup2(nul, 1); /* keeps ctest's output pipe from waiting on the daemon */
+      close(nul);
+    }
+    char *argv[32];
+    int n = 0;
+    argv[n++] = (char *)SM_SERVER_BIN;
+    char *args[] = {"--port", "0", "--data-dir", datadir, "--threads", "2", "--default-k",
+                    "30", "--drain-ms", "5000", "--idle-timeout-ms", "3000", NULL};
+    for (int i = 0; args[i]; i++) argv[n++] = args[i];
+    char ebuf[256];
+    snprintf(ebuf, sizeof ebuf, "%s", extra ? extra : "");
+    for (char *t = strtok(ebuf, " "); t && n < 30; t = strtok(NULL, " ")) argv[n++] = t;
+    argv[n] = NULL;
+    execv(argv[0], argv);
+    _exit(127);
+  }
+  g_pid = pid;
+  /* The daemon logs `msg=listening port=N`; poll its log file (a pipe could fill up). */
+  for (int tries = 0; tries < 600; tries++) {
+    FILE *f = fopen(g_log, "r");
+    char line[1024];
+    int port = -1;
+    while (f && fgets(line, sizeof line, f)) {
+      char *p = strstr(line, "msg=listening port=");
+      if (p) port = atoi(p + strlen("msg=listening port="));
+    }
+    if (f) fclose(f);
+    if (port > 0) return port;
+    int st;
+    if (waitpid(pid, &st, WNOHANG) == pid) {
+      g_pid = -1;
+      fprintf(stderr, "daemon exited early (status %d)\n", st);
+      return -1;
+    }
+    sleep_us(50000);
+  }
+  return -1;
+}
+
+/* SIGTERM; returns the exit status (or -1). */
+static int stop_daemon(void) {
+  kill(g_pid, SIGTERM);
+  int st = 0;
+  for (int i = 0; i < 600; i++) {
+    if (waitpid(g_pid, &st, WNOHANG) == g_pid) {
+      g_pid = -1;
+      return WIFEXITED(st) ? WEXITSTATUS(st) : 128 + WTERMSIG(st);
+    }
+    sleep_us(50000);
+  }
+  kill_daemon();
+  return -1;
+}
+
+/* ------------------------------------------------------------------ wire */
+
+static int connect_to(int port) {
+  int fd = socket(AF_INET, SOCK_STREAM, 0);
+  REQUIRE(fd >= 0);
+  struct sockaddr_in a;
+  memset(&a, 0, sizeof a);
+  a.sin_family = AF_INET;
+  a.sin_port = htons((uint16_t)port);
+  a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  REQUIRE(connect(fd, (struct sockaddr *)&a, sizeof a) == 0);
+  struct timeval tv = {IO_TIMEOUT_S, 0};
+  setsockopt(fd, SOL_SOCKET, SO_RCVTIMEO, &tv, sizeof tv);
+  setsockopt(fd, SOL_SOCKET, SO_SNDTIMEO, &tv, sizeof tv);
+  return fd;
+}
+
+static int send_all(int fd, const void *b, size_t n) {
+  const uint8_t *p = b;
+  while (n) {
+    ssize_t w = send(fd, p, n, MSG_NOSIGNAL);
+    if (w < 0 && errno == EINTR) continue;
+    if (w <= 0) return -1;
+    p += w;
+    n -= (size_t)w;
+  }
+  return 0;
+}
+
+static int recv_all(int fd, void *b, size_t n) {
+  uint8_t *p = b;
+  while (n) {
+    ssize_t r = recv(fd, p, n, 0);
+    if (r < 0 && errno == EINTR) continue;
+    if (r <= 0) return -1;
+    p += r;
+    n -= (size_t)r;
+  }
+  return 0;
+}
+
+typedef struct frame {
+  sm_proto_header h;
+  uint8_t *buf; /* whole frame */
+  const uint8_t *body;
+  uint32_t body_len;
+} frame;
+
+/* 0, or -1 on EOF/timeout/parse error. */
+static int recv_frame(int fd, frame *f) {
+  memset(f, 0, sizeof *f);
+  uint8_t hdr[SM_PROTO_HEADER_LEN];
+  if (recv_all(fd, hdr, sizeof hdr)) return -1;
+  if (sm_proto_parse_header(hdr, sizeof hdr, UINT32_MAX, &f->h) != SM_PROTO_HEADER_LEN) return -1;
+  f->buf = malloc(SM_PROTO_HEADER_LEN + (size_t)f->h.payload_len);
+  REQUIRE(f->buf);
+  memcpy(f->buf, hdr, sizeof hdr);
+  if (recv_all(fd, f->buf + SM_PROTO_HEADER_LEN, f->h.payload_len)) return -1;
+  sm_proto_frame pf;
+  ptrdiff_t n = sm_proto_parse_frame(f->buf, SM_PROTO_HEADER_LEN + f->h.payload_len, UINT32_MAX, &pf);
+  if (n < 0) return -1;
+  f->body = pf.body;
+  f->body_len = pf.body_len;
+  return 0;
+}
+
+static void frame_free(frame *f) { free(f->buf); }
+
+/* Encodes with enc into a growing buffer and sends. */
+#define SEND(fd, call_with_buf_cap)                                                  \
+  do {                                                                               \
+    size_t cap_ = 256;                                                               \
+    uint8_t *buf = malloc(cap_);                                                     \
+    size_t cap = cap_;                                                               \
+    ptrdiff_t n_ = (call_with_buf_cap);                                              \
+    if (n_ > (ptrdiff_t)cap) {                                                       \
+      free(buf);                                                                     \
+      cap = (size_t)n_;                                                              \
+      buf = malloc(cap);                                                             \
+      n_ = (call_with_buf_cap);                                                      \
+    }                                                                                \
+    REQUIRE(n_ > 0);                                                                 \
+    REQUIRE(send_all(fd, buf, (size_t)n_) == 0);                                     \
+    free(buf);                                                                       \
+  } while (0)
+
+static sm_proto_header req_hdr(uint32_t rid) {
+  sm_proto_header h;
+  memset(&h, 0, sizeof h);
+  h.request_id = rid;
+  return h;
+}
+
+static void hello(int fd, sm_proto_hello_resp *out) {
+  sm_proto_hello_req q;
+  memset(&q, 0, sizeof q);
+  q.min_version = q.max_version = 1;
+  sm_proto_header h = req_hdr(g_rid++);
+  SEND(fd, sm_proto_enc_hello_req(buf, cap, &h, &q));
+  frame f;
+  REQUIRE(recv_frame(fd, &f) == 0);
+  REQUIRE(f.h.status == SM_ST_OK && f.h.opcode == SM_OP_HELLO);
+  sm_proto_hello_resp r;
+  REQUIRE(sm_proto_dec_hello_resp(f.body, f.body_len, &r) == 0);
+  if (out) *out = r;
+  frame_free(&f);
+}
+
+static int ping(int fd, uint64_t v) {
+  sm_proto_ping q = {v};
+  uint32_t rid = g_rid++;
+  sm_proto_header h = req_hdr(rid);
+  size_t cap = 64;
+  uint8_t buf[64];
+  ptrdiff_t n = sm_proto_enc_ping(buf, cap, &h, 0, &q);
+  if (n <= 0 || send_all(fd, buf, (size_t)n)) return -1;
+  frame f;
+  if (recv_frame(fd, &f)) return -1;
+  sm_proto_ping r = {0};
+  int ok = f.h.status == 0 && f.h.request_id == rid && !sm_proto_dec_ping(f.body, f.body_len, &r) &&
+           r.opaque == v;
+  frame_free(&f);
+  return ok ? 0 : -1;
+}
+
+/* Value of a STATS counter (UINT64_MAX if absent). */
+static uint64_t stat_of(int fd, const char *name) {
+  sm_proto_header h = req_hdr(g_rid++);
+  h.opcode = SM_OP_STATS;
+  uint8_t buf[64];
+  ptrdiff_t n = sm_proto_enc_empty(buf, sizeof buf, &h);
+  REQUIRE(n > 0 && send_all(fd, buf, (size_t)n) == 0);
+  frame f;
+  REQUIRE(recv_frame(fd, &f) == 0);
+  if (f.h.status) {
+    sm_proto_error e;
+    if (!sm_proto_dec_error(f.body, f.body_len, &e))
+      fprintf(stderr, "  STATS -> %s: %.*s\n", sm_proto_status_name(f.h.status), (int)e.msg_len, e.msg);
+  }
+  REQUIRE(f.h.status == 0);
+  sm_proto_stats_resp s;
+  REQUIRE(sm_proto_dec_stats_resp(f.body, f.body_len, &s) == 0);
+  uint64_t v = UINT64_MAX;
+  for (uint32_t i = 0; i < s.count; i++) {
+    sm_proto_stat st;
+    if (!sm_proto_stat_at(&s, i, &st) && !strcmp(st.name, name)) v = st.value;
+  }
+  frame_free(&f);
+  return v;
+}
+
+/* PUT; returns the status, fills the response. */
+static uint16_t put(int fd, const uint8_t id[32], const uint8_t *drc, size_t len,
+                    sm_proto_put_resp *out) {
+  sm_proto_put_req q;
+  memset(&q, 0, sizeof q);
+  memcpy(q.id, id, 32);
+  q.draco = drc;
+  q.draco_len = (uint32_t)len;
+  sm_proto_header h = req_hdr(g_rid++);
+  SEND(fd, sm_proto_enc_put_req(buf, cap, &h, &q));
+  frame f;
+  REQUIRE(recv_frame(fd, &f) == 0);
+  uint16_t st = f.h.status;
+  if (!st && out) REQUIRE(sm_proto_dec_put_resp(f.body, f.body_len, out) == 0);
+  if (st) {
+    sm_proto_error e;
+    if (!sm_proto_dec_error(f.body, f.body_len, &e))
+      fprintf(stderr, "  PUT -> %s: %.*s\n", sm_proto_status_name(st), (int)e.msg_len, e.msg);
+  }
+  frame_free(&f);
+  return st;
+}
+
+static uint32_t has(int fd, const uint8_t id[32]) {
+  sm_proto_id_req q;
+  memcpy(q.id, id, 32);
+  sm_proto_header h = req_hdr(g_rid++);
+  SEND(fd, sm_proto_enc_id_req(buf, cap, &h, SM_OP_HAS_SHAPE, &q));
+  frame f;
+  REQUIRE(recv_frame(fd, &f) == 0);
+  REQUIRE(f.h.status == 0);
+  sm_proto_has_resp r;
+  REQUIRE(sm_proto_dec_has_resp(f.body, f.body_len, &r) == 0);
+  frame_free(&f);
+  return r.flags;
+}
+
+static void match_req(sm_proto_match_req *q, const shape *x, const shape *y, uint16_t flags) {
+  memset(q, 0, sizeof *q);
+  memcpy(q->x, x->id, 32);
+  memcpy(q->y, y->id, 32);
+  q->flags = flags;
+  q->k1 = K;
+}
+
+/* MATCH; returns status; *map (malloc'd, nx entries) and *dist. */
+static uint16_t do_match(int fd, const shape *x, const shape *y, int32_t **map, uint32_t *nx,
+                         sm_proto_dist *dist, uint64_t *t_prepare) {
+  sm_proto_match_req q;
+  match_req(&q, x, y, SM_MATCH_F_WANT_YX | SM_MATCH_F_WANT_DISTANCE | SM_MATCH_F_SINGLE_START);
+  uint32_t rid = g_rid++;
+  sm_proto_header h = req_hdr(rid);
+  SEND(fd, sm_proto_enc_match_req(buf, cap, &h, SM_OP_MATCH, &q));
+  frame f;
+  REQUIRE(recv_frame(fd, &f) == 0);
+  CHECK(f.h.request_id == rid);
+  uint16_t st = f.h.status;
+  if (!st) {
+    sm_proto_match_resp r;
+    REQUIRE(sm_proto_dec_match_resp(f.body, f.body_len, &r) == 0);
+    *nx = r.map_xy.count;
+    *map = malloc((size_t)r.map_xy.count * 4 + 4);
+    for (uint32_t i = 0; i < r.map_xy.count; i++) (*map)[i] = sm_proto_i32_at(&r.map_xy, i);
+    *dist = r.dist;
+    CHECK(r.flags & SM_MATCH_R_HAS_DISTANCE);
+    CHECK(r.map_yx.count == (uint32_t)y->mesh->nv);
+    if (t_prepare) *t_prepare = r.t_prepare_us;
+  } else {
+    sm_proto_error e;
+    if (!sm_proto_dec_error(f.body, f.body_len, &e))
+      fprintf(stderr, "  MATCH -> %s: %.*s\n", sm_proto_status_name(st), (int)e.msg_len, e.msg);
+  }
+  frame_free(&f);
+  return st;
+}
+
+/* ------------------------------------------------------------------ data */
+
+static void shape_from_bytes(shape *s, uint8_t *drc, size_t len) {
+  s->drc = drc;
+  s->len = len;
+  sm_sha256(drc, len, s->id);
+  sm_error err;
+  REQUIRE(sm_draco_decode(drc, len, NULL, &s->mesh, &err) == 0);
+}
+
+static int load_shapes(shape *x, shape *y) {
+  char p1[1024], p2[1024];
+  const char *a = sm_test_data("pyfm_cat_lion/drc/lion-00.drc", p1, sizeof p1);
+  const char *b = sm_test_data("pyfm_cat_lion/drc/cat-00.drc", p2, sizeof p2);
+  sm_error err;
+  if (a && b) {
+    uint8_t *ba, *bb;
+    size_t la, lb;
+    REQUIRE(sm_read_file_bytes(a, 1 << 26, &ba, &la, &err) == 0);
+    REQUIRE(sm_read_file_bytes(b, 1 << 26, &bb, &lb, &err) == 0);
+    shape_from_bytes(x, ba, la);
+    shape_from_bytes(y, bb, lb);
+    return 1;
+  }
+  fprintf(stderr, "note: ../shared/data absent, using synthetic blobs\n");
+  double st1[3] = {1, 1, 1}, st2[3] = {1.3, 0.9, 1};
+  for (int i = 0; i < 2; i++) {
+    sm_mesh *m = NULL;
+    REQUIRE(sm_synth_blob(4, 0.2, 7u + (unsigned)i, i ? st2 : st1, &m, &err) == 0);
+    uint8_t *buf;
+    size_t len;
+    REQUIRE(sm_draco_encode(m, 0, &buf, &len, &err) == 0);
+    sm_mesh_destroy(m);
+    shape_from_bytes(i ? y : x, buf, len);
+  }
+  return 0;
+}
+
+/* The reference: the same pipeline locally (bases k = K, SINGLE_START, want_yx). */
+static void local_match(const shape *x, const shape *y, int32_t **map, sm_distance_parts *d) {
+  sm_shape_opts so;
+  sm_shape_opts_default(&so);
+  so.k_lb = so.k_elastic = K;
+  sm_shape *sx = NULL, *sy = NULL;
+  sm_error err;
+  REQUIRE(sm_shape_prepare(x->mesh, &so, &sx, &err) == 0);
+  REQUIRE(sm_shape_prepare(y->mesh, &so, &sy, &err) == 0);
+  sm_match_opts mo;
+  sm_match_opts_default(&mo);
+  mo.k1 = K;
+  mo.multi_start = 0;
+  mo.want_yx = 1;
+  sm_match_result r;
+  REQUIRE(sm_match(sx, sy, &mo, &r, &err) == 0);
+  *map = malloc((size_t)sx->mesh->n_input * 4);
+  sm_match_to_input(sx, sy, r.T, *map);
+  REQUIRE(sm_shape_distance(sx, sy, r.T, r.T_yx, d, &err) == 0);
+  sm_match_result_free(&r);
+  sm_shape_destroy(sx);
+  sm_shape_destroy(sy);
+}
+
+static int maps_equal(const int32_t *a, const int32_t *b, uint32_t n) {
+  uint32_t diff = 0;
+  for (uint32_t i = 0; i < n; i++) diff += a[i] != b[i];
+  if (diff) fprintf(stderr, "  maps differ at %u of %u vertices\n", diff, n);
+  return diff == 0;
+}
+
+static void rm_rf(const char *dir) {
+  DIR *d = opendir(dir);
+  if (!d) return;
+  struct dirent *de;
+  while ((de = readdir(d))) {
+    if (!strcmp(de->d_name, ".") || !strcmp(de->d_name, "..")) continue;
+    char p[1200];
+    snprintf(p, sizeof p, "%s/%s", dir, de->d_name);
+    struct stat st;
+    if (!lstat(p, &st) && S_ISDIR(st.st_mode)) rm_rf(p);
+    else unlink(p);
+  }
+  closedir(d);
+  rmdir(dir);
+}
+
+/* Path of the elastic basis file of shape s (first match in bases/), or "" */
+static int find_basis(const shape *s, const char *kind, char *out, size_t n) {
+  char hex[65], dir[700];
+  for (int i = 0; i < 32; i++) sprintf(hex + 2 * i, "%02x", s->id[i]);
+  snprintf(dir, sizeof dir, "%s/data/bases", g_dir);
+  DIR *d = opendir(dir);
+  if (!d) return -1;
+  struct dirent *de;
+  int found = -1;
+  while ((de = readdir(d)))
+    if (!strncmp(de->d_name, hex, 64) && !strncmp(de->d_name + 65, kind, strlen(kind))) {
+      snprintf(out, n, "%s/%s", dir, de->d_name);
+      found = 0;
+    }
+  closedir(d);
+  return found;
+}
+
+/* ------------------------------------------------------------------ main */
+
+int main(void) {
+  signal(SIGPIPE, SIG_IGN);
+  signal(SIGALRM, on_alarm);
+  atexit(kill_daemon); /* REQUIRE exits: never leave a daemon behind */
+  alarm(500);
+  openblas_set_num_threads(1); /* same BLAS threading as the daemon's workers */
+  snprintf(g_dir, sizeof g_dir, "%s/test_server.XXXXXX", SM_TEST_TMP);
+  REQUIRE(mkdtemp(g_dir) != NULL);
+
+  shape x, y;
+  memset(&x, 0, sizeof x);
+  memset(&y, 0, sizeof y);
+  int real = load_shapes(&x, &y);
+  fprintf(stderr, "shapes: %s, x %d vertices, y %d vertices\n", real ? "lion/cat" : "blobs",
+          x.mesh->nv, y.mesh->nv);
+  int32_t *ref_map = NULL;
+  sm_distance_parts ref_d;
+  local_match(&x, &y, &ref_map, &ref_d);
+
+  /* ---------------- run 1 */
+  int port = start_daemon("--metrics-port 0");
+  REQUIRE(port > 0);
+  int fd = connect_to(port);
+  sm_proto_hello_resp hr;
+  hello(fd, &hr);
+  CHECK(hr.version == 1);
+  CHECK(hr.max_payload == 256u << 20);
+  CHECK(hr.idle_timeout_ms == 3000);
+  CHECK(ping(fd, 0x1122334455667788ull) == 0);
+
+  sm_proto_put_resp pr;
+  CHECK(put(fd, x.id, x.drc, x.len, &pr) == SM_ST_OK);
+  CHECK(pr.n_vertices == (uint32_t)x.mesh->nv && pr.n_faces == (uint32_t)x.mesh->nf);
+  CHECK(!(pr.flags & SM_PUT_R_EXISTED));
+  CHECK(put(fd, y.id, y.drc, y.len, &pr) == SM_ST_OK);
+  CHECK(put(fd, x.id, x.drc, x.len, &pr) == SM_ST_OK && (pr.flags & SM_PUT_R_EXISTED));
+  CHECK(has(fd, x.id) & SM_HAS_STORED);
+  CHECK(!(has(fd, x.id) & SM_HAS_PREPARED));
+
+  /* Wrong id, then corrupt Draco bytes with a correct id: request-level errors. */
+  CHECK(put(fd, y.id, x.drc, x.len, NULL) == SM_ST_ID_MISMATCH);
+  uint8_t junk[512];
+  for (size_t i = 0; i < sizeof junk; i++) junk[i] = (uint8_t)(i * 37 + 11);
+  memcpy(junk, "DRACO", 5); /* looks like a header, is not a mesh */
+  uint8_t jid[32];
+  sm_sha256(junk, sizeof junk, jid);
+  CHECK(put(fd, jid, junk, sizeof junk, NULL) == SM_ST_DECODE_FAILED);
+  /* A truncated real file. */
+  uint8_t tid[32];
+  sm_sha256(x.drc, x.len / 2, tid);
+  uint16_t tst = put(fd, tid, x.drc, x.len / 2, NULL);
+  CHECK(tst == SM_ST_DECODE_FAILED || tst == SM_ST_MESH_REJECTED);
+  CHECK(!(has(fd, jid) & SM_HAS_STORED));
+  CHECK(ping(fd, 5) == 0);
+
+  /* MATCH: the daemon's map equals the local one. */
+  int32_t *map = NULL;
+  uint32_t nx = 0;
+  sm_proto_dist dist;
+  uint64_t t_prep = 0;
+  CHECK(do_match(fd, &x, &y, &map, &nx, &dist, &t_prep) == SM_ST_OK);
+  CHECK(nx == (uint32_t)x.mesh->nv);
+  if (map && nx == (uint32_t)x.mesh->nv) CHECK(maps_equal(map, ref_map, nx));
+  CHECK_NEAR(dist.total, ref_d.total, 1e-12);
+  CHECK(t_prep > 0);
+  free(map);
+  map = NULL;
+  CHECK(stat_of(fd, "bases_computed") == 4);
+  CHECK(has(fd, x.id) & SM_HAS_PREPARED);
+
+  /* DISTANCE: same number, from the cache. */
+  {
+    sm_proto_match_req q;
+    match_req(&q, &x, &y, SM_MATCH_F_SINGLE_START);
+    sm_proto_header h = req_hdr(g_rid++);
+    SEND(fd, sm_proto_enc_match_req(buf, cap, &h, SM_OP_DISTANCE, &q));
+    frame f;
+    REQUIRE(recv_frame(fd, &f) == 0);
+    CHECK(f.h.status == 0);
+    sm_proto_distance_resp r;
+    if (!f.h.status && !sm_proto_dec_distance_resp(f.body, f.body_len, &r)) {
+      CHECK_NEAR(r.dist.total, ref_d.total, 1e-12);
+      CHECK(r.dist.total >= 0 && r.dist.total <= 2);
+    }
+    frame_free(&f);
+    CHECK(stat_of(fd, "bases_computed") == 4);
+    CHECK(stat_of(fd, "cache_hits") >= 2);
+  }
+
+  /* BATCH: PING, HAS, MATCH with a bad id (NOT_FOUND), PREPARE (cached) -> 4 items + final. */
+  {
+    uint8_t ping_p[8] = {9}, has_p[32], prep_p[48], mbuf[256];
+    memcpy(has_p, y.id, 32);
+    sm_proto_prepare_req pq;
+    memset(&pq, 0, sizeof pq);
+    memcpy(pq.id, x.id, 32);
+    REQUIRE(sm_proto_enc_prepare_req(prep_p, sizeof prep_p, NULL, &pq) == 48);
+    sm_proto_match_req mq;
+    match_req(&mq, &x, &y, SM_MATCH_F_SINGLE_START);
+    mq.y[0] ^= 0xff;
+    ptrdiff_t ml = sm_proto_enc_match_req(mbuf, sizeof mbuf, NULL, SM_OP_MATCH, &mq);
+    REQUIRE(ml > 0);
+    sm_proto_batch_item items[4] = {{SM_OP_PING, ping_p, 8},
+                                    {SM_OP_HAS_SHAPE, has_p, 32},
+                                    {SM_OP_MATCH, mbuf, (uint32_t)ml},
+                                    {SM_OP_PREPARE, prep_p, 48}};
+    sm_proto_batch_req bq;
+    memset(&bq, 0, sizeof bq);
+    bq.v = items;
+    bq.count = 4;
+    uint32_t rid = g_rid++;
+    sm_proto_header h = req_hdr(rid);
+    SEND(fd, sm_proto_enc_batch_req(buf, cap, &h, &bq));
+    int seen[4] = {0}, n_items = 0, done = 0;
+    uint16_t sts[4] = {0};
+    while (!done) {
+      frame f;
+      REQUIRE(recv_frame(fd, &f) == 0);
+      CHECK(f.h.request_id == rid && f.h.opcode == SM_OP_BATCH);
+      if (f.h.flags & SM_PROTO_F_MORE) {
+        sm_proto_batch_item_resp ir;
+        REQUIRE(sm_proto_dec_batch_item_resp(f.body, f.body_len, &ir) == 0);
+        REQUIRE(ir.index < 4);
+        seen[ir.index]++;
+        sts[ir.index] = f.h.status;
+        n_items++;
+      } else {
+        sm_proto_batch_done d;
+        CHECK(f.h.status == 0);
+        REQUIRE(sm_proto_dec_batch_done(f.body, f.body_len, &d) == 0);
+        CHECK(d.n_items == 4 && d.n_ok == 3);
+        done = 1;
+      }
+      frame_free(&f);
+    }
+    CHECK(n_items == 4 && seen[0] == 1 && seen[1] == 1 && seen[2] == 1 && seen[3] == 1);
+    CHECK(sts[0] == 0 && sts[1] == 0 && sts[2] == SM_ST_NOT_FOUND && sts[3] == 0);
+  }
+
+  /* CANCEL of an unknown request: NOT_FOUND; unknown opcode: request-level. */
+  {
+    sm_proto_cancel_req cq = {12345};
+    sm_proto_header h = req_hdr(g_rid++);
+    SEND(fd, sm_proto_enc_cancel_req(buf, cap, &h, &cq));
+    frame f;
+    REQUIRE(recv_frame(fd, &f) == 0);
+    CHECK(f.h.status == SM_ST_NOT_FOUND);
+    frame_free(&f);
+    uint8_t raw[SM_PROTO_HEADER_LEN];
+    sm_proto_header uh = {1, 77, 0, g_rid++, 0, 0};
+    sm_proto_write_header(raw, &uh);
+    REQUIRE(send_all(fd, raw, sizeof raw) == 0);
+    REQUIRE(recv_frame(fd, &f) == 0);
+    CHECK(f.h.status == SM_ST_UNKNOWN_OPCODE);
+    frame_free(&f);
+    CHECK(ping(fd, 6) == 0);
+  }
+
+  /* Oversize frame header on a second connection: one GOAWAY FRAME_TOO_LARGE, then EOF. */
+  {
+    int fd2 = connect_to(port);
+    hello(fd2, NULL);
+    uint8_t raw[SM_PROTO_HEADER_LEN];
+    uint32_t rid = g_rid++;
+    sm_proto_header oh = {1, SM_OP_PUT_SHAPE, 0, rid, 0, hr.max_payload + 1u};
+    sm_proto_write_header(raw, &oh);
+    REQUIRE(send_all(fd2, raw, sizeof raw) == 0);
+    frame f;
+    REQUIRE(recv_frame(fd2, &f) == 0);
+    CHECK(f.h.opcode == SM_OP_GOAWAY && f.h.status == SM_ST_FRAME_TOO_LARGE);
+    CHECK(f.h.request_id == rid);
+    sm_proto_error e;
+    CHECK(sm_proto_dec_error(f.body, f.body_len, &e) == 0 && e.detail == hr.max_payload);
+    frame_free(&f);
+    uint8_t b;
+    CHECK(recv(fd2, &b, 1, 0) == 0); /* closed */
+    close(fd2);
+    /* Bad magic before HELLO. */
+    fd2 = connect_to(port);
+    REQUIRE(send_all(fd2, "GET / HTTP/1.0\r\n\r\n", 18) == 0);
+    REQUIRE(recv_frame(fd2, &f) == 0);
+    CHECK(f.h.opcode == SM_OP_GOAWAY && f.h.status == SM_ST_BAD_MAGIC);
+    frame_free(&f);
+    close(fd2);
+    /* A request before HELLO. */
+    fd2 = connect_to(port);
+    CHECK(ping(fd2, 1) != 0); /* answered with GOAWAY PROTOCOL_ERROR */
+    close(fd2);
+    CHECK(ping(fd, 7) == 0); /* the first connection is unaffected */
+  }
+
+  /* Abrupt disconnect in the middle of a computing request (new eta: bases to compute)
+   * and in the middle of a frame. */
+  {
+    int fd3 = connect_to(port);
+    hello(fd3, NULL);
+    sm_proto_match_req q;
+    match_req(&q, &y, &x, SM_MATCH_F_SINGLE_START);
+    q.eta = 3e-4;
+    sm_proto_header h = req_hdr(g_rid++);
+    SEND(fd3, sm_proto_enc_match_req(buf, cap, &h, SM_OP_MATCH, &q));
+    sleep_us(100000);
+    close(fd3);
+    fd3 = connect_to(port);
+    hello(fd3, NULL);
+    uint8_t raw[SM_PROTO_HEADER_LEN];
+    sm_proto_header ph = {1, SM_OP_PUT_SHAPE, 0, g_rid++, 0, 1000};
+    sm_proto_write_header(raw, &ph);
+    REQUIRE(send_all(fd3, raw, sizeof raw) == 0);
+    REQUIRE(send_all(fd3, x.drc, 100) == 0);
+    close(fd3);
+    CHECK(ping(fd, 8) == 0);
+  }
+
+  /* A client that trickles a frame: TIMEOUT after idle_timeout_ms (3 s). */
+  {
+    int fd4 = connect_to(port);
+    hello(fd4, NULL);
+    uint8_t raw[SM_PROTO_HEADER_LEN];
+    sm_proto_header ph = {1, SM_OP_PING, 0, g_rid++, 0, 8};
+    sm_proto_write_header(raw, &ph);
+    REQUIRE(send_all(fd4, raw, 10) == 0);
+    frame f;
+    REQUIRE(recv_frame(fd4, &f) == 0);
+    CHECK(f.h.opcode == SM_OP_GOAWAY && f.h.status == SM_ST_TIMEOUT);
+    frame_free(&f);
+    close(fd4);
+  }
+  /* fd was idle for that long too: reconnect (also tests that idle closes happen). */
+  close(fd);
+  fd = connect_to(port);
+  hello(fd, NULL);
+  CHECK(stat_of(fd, "shapes") == 2);
+  CHECK(ping(fd, 9) == 0);
+
+  /* Unknown-id DROP, and DROP + re-PUT of a third shape. */
+  {
+    uint8_t zid[32] = {1, 2, 3};
+    sm_proto_id_req q;
+    memcpy(q.id, zid, 32);
+    sm_proto_header h = req_hdr(g_rid++);
+    SEND(fd, sm_proto_enc_id_req(buf, cap, &h, SM_OP_DROP_SHAPE, &q));
+    frame f;
+    REQUIRE(recv_frame(fd, &f) == 0);
+    CHECK(f.h.status == SM_ST_NOT_FOUND);
+    frame_free(&f);
+  }
+  close(fd);
+  CHECK(stop_daemon() == 0);
+
+  /* ---------------- run 2: same data dir, bases come from disk */
+  port = start_daemon(NULL);
+  REQUIRE(port > 0);
+  fd = connect_to(port);
+  hello(fd, NULL);
+  CHECK(stat_of(fd, "shapes") == 2);
+  uint32_t hf = has(fd, x.id);
+  CHECK((hf & SM_HAS_STORED) && (hf & SM_HAS_PREPARED));
+  CHECK(do_match(fd, &x, &y, &map, &nx, &dist, NULL) == SM_ST_OK);
+  if (map && nx == (uint32_t)x.mesh->nv) CHECK(maps_equal(map, ref_map, nx));
+  CHECK_NEAR(dist.total, ref_d.total, 1e-12);
+  free(map);
+  map = NULL;
+  CHECK(stat_of(fd, "bases_computed") == 0);
+  CHECK(stat_of(fd, "bases_loaded") == 4);
+  close(fd);
+  CHECK(stop_daemon() == 0);
+
+  /* ---------------- run 3: a corrupted basis file is detected and recomputed */
+  char bpath[1200];
+  REQUIRE(find_basis(&x, "el.", bpath, sizeof bpath) == 0);
+  {
+    FILE *f = fopen(bpath, "r+b");
+    REQUIRE(f);
+    fseek(f, 0, SEEK_END);
+    long sz = ftell(f);
+    fseek(f, sz / 2, SEEK_SET);
+    int ch = fgetc(f);
+    fseek(f, sz / 2, SEEK_SET);
+    fputc(ch ^ 0x5a, f);
+    fclose(f);
+  }
+  port = start_daemon(NULL);
+  REQUIRE(port > 0);
+  fd = connect_to(port);
+  hello(fd, NULL);
+  CHECK(do_match(fd, &x, &y, &map, &nx, &dist, NULL) == SM_ST_OK);
+  if (map && nx == (uint32_t)x.mesh->nv) CHECK(maps_equal(map, ref_map, nx));
+  CHECK_NEAR(dist.total, ref_d.total, 1e-12);
+  free(map);
+  CHECK(stat_of(fd, "bases_corrupt") == 1);
+  CHECK(stat_of(fd, "bases_computed") == 1);
+  CHECK(stat_of(fd, "bases_loaded") == 3);
+  close(fd);
+  CHECK(stop_daemon() == 0);
+
+  /* The daemon logged logfmt lines. */
+  FILE *lf = fopen(g_log, "r");
+  char line[1024];
+  int logfmt_ok = lf != NULL;
+  while (lf && fgets(line, sizeof line, lf))
+    if (strncmp(line, "ts=", 3) || !strstr(line, " level=") || !strstr(line, " msg=")) logfmt_ok = 0;
+  if (lf) fclose(lf);
+  CHECK(logfmt_ok);
+
+  kill_daemon();
+  if (!sm_test_failures) rm_rf(g_dir);
+  else fprintf(stderr, "kept %s for inspection\n", g_dir);
+  free(ref_map);
+  free(x.drc);
+  free(y.drc);
+  sm_mesh_destroy(x.mesh);
+  sm_mesh_destroy(y.mesh);
+  return sm_test_finish();
+}
