@@ -525,7 +525,7 @@ static void process(sm_server *s, sm_conn *c) {
     c->frame_start_ns = sm_srv_now_ns();
     int can_steal = off == 0 && total == c->rlen;
     int stolen = on_frame(s, c, &f, total, can_steal);
-    if (stolen) {
+    if (stolen || c->state != SM_CONN_OPEN) { /* fatal already discarded the input */
       c->rlen = 0;
       return;
     }
