@@ -616,6 +616,53 @@ int main(void) {
     CHECK(sts[0] == 0 && sts[1] == 0 && sts[2] == SM_ST_NOT_FOUND && sts[3] == 0);
   }
 
+  /* Single-flight: two pipelined PREPAREs of the same new variant (2 workers) compute it
+   * once; the second waits. Then CANCEL of a running PREPARE answers CANCELLED. */
+  {
+    uint64_t comp0 = stat_of(fd, "bases_computed"), waits0 = stat_of(fd, "singleflight_waits");
+    sm_proto_prepare_req pq;
+    memset(&pq, 0, sizeof pq);
+    memcpy(pq.id, y.id, 32);
+    pq.k_lb = pq.k_elastic = 25;
+    uint32_t r1 = g_rid++, r2 = g_rid++;
+    sm_proto_header h1 = req_hdr(r1), h2 = req_hdr(r2);
+    SEND(fd, sm_proto_enc_prepare_req(buf, cap, &h1, &pq));
+    SEND(fd, sm_proto_enc_prepare_req(buf, cap, &h2, &pq));
+    int cached = 0;
+    for (int i = 0; i < 2; i++) {
+      frame f;
+      REQUIRE(recv_frame(fd, &f) == 0);
+      CHECK(f.h.status == 0 && (f.h.request_id == r1 || f.h.request_id == r2));
+      sm_proto_prepare_resp r;
+      if (!f.h.status && !sm_proto_dec_prepare_resp(f.body, f.body_len, &r)) {
+        CHECK(r.k_lb == 25 && r.k_elastic == 25);
+        cached += (r.flags & SM_PREP_R_CACHED) != 0;
+      }
+      frame_free(&f);
+    }
+    CHECK(cached == 0); /* the waiter computed nothing but did not find it cached either */
+    CHECK(stat_of(fd, "bases_computed") == comp0 + 2);
+    CHECK(stat_of(fd, "singleflight_waits") == waits0 + 1);
+
+    pq.k_lb = pq.k_elastic = 35;
+    uint32_t r3 = g_rid++, r4 = g_rid++;
+    sm_proto_header h3 = req_hdr(r3), h4 = req_hdr(r4);
+    SEND(fd, sm_proto_enc_prepare_req(buf, cap, &h3, &pq));
+    sleep_us(200000);
+    sm_proto_cancel_req cq = {r3};
+    SEND(fd, sm_proto_enc_cancel_req(buf, cap, &h4, &cq));
+    uint16_t st3 = 0xffff, st4 = 0xffff;
+    for (int i = 0; i < 2; i++) {
+      frame f;
+      REQUIRE(recv_frame(fd, &f) == 0);
+      if (f.h.request_id == r3) st3 = f.h.status;
+      if (f.h.request_id == r4) st4 = f.h.status;
+      frame_free(&f);
+    }
+    CHECK(st4 == SM_ST_OK);
+    CHECK(st3 == SM_ST_CANCELLED);
+  }
+
   /* CANCEL of an unknown request: NOT_FOUND; unknown opcode: request-level. */
   {
     sm_proto_cancel_req cq = {12345};
