@@ -1,0 +1,958 @@
+/* test_server_concurrency: the real shapematchd (SM_SERVER_BIN, --port 0, temp --data-dir)
+ * under concurrent clients and at its limits, with small synthetic shapes and k1 = 30:
+ *   1. 8 client threads (one connection each) x 25 pipelined requests (PING, HAS, MATCH,
+ *      DISTANCE; 4 in flight): every response arrives exactly once with its request id
+ *      and the right content (maps / distances equal a local reference);
+ *   2. single-flight through STATS: 8 clients PREPARE the same new variant of z at once ->
+ *      bases_computed grows by exactly one preparation (2 bases), singleflight_waits >= 1;
+ *   3. limits, each on its own daemon (same data dir): --queue 1 --threads 1 flood (BUSY
+ *      with retry_after_ms, none lost, STATS busy equals the BUSY answers seen);
+ *      --max-inflight 2 (LIMIT_EXCEEDED, detail 2); --max-conns 2 (GOAWAY
+ *      TOO_MANY_CONNECTIONS, the others keep working); --token (missing / wrong ->
+ *      UNAUTHORIZED, right -> accepted); --cache-mb 1 (cache_evictions > 0, requests still
+ *      right, bases reloaded from disk);
+ *   4. each daemon still answers afterwards and exits 0 on SIGTERM.
+ * Worker threads never use CHECK/REQUIRE (not thread-safe): they count failures in their
+ * own context; the main thread checks them. Every socket read has a timeout; alarm()
+ * bounds the whole program. */
+#include <arpa/inet.h>
+#include <cblas.h>
+#include <dirent.h>
+#include <errno.h>
+#include <fcntl.h>
+#include <netinet/in.h>
+#include <pthread.h>
+#include <signal.h>
+#include <stdint.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/socket.h>
+#include <sys/stat.h>
+#include <sys/time.h>
+#include <sys/wait.h>
+#include <time.h>
+#include <unistd.h>
+
+#include "sm_distance.h"
+#include "sm_match.h"
+#include "sm_meshio.h"
+#include "sm_proto.h"
+#include "sm_sha256.h"
+#include "sm_synth.h"
+#include "sm_test.h"
+
+#ifndef SM_SERVER_BIN
+#error "SM_SERVER_BIN must name the shapematchd binary"
+#endif
+
+#define K 30
+#define IO_TIMEOUT_S 120
+#define NCLIENTS 8
+#define NREQ 25
+#define WINDOW 4
+
+typedef struct shape {
+  uint8_t *drc;
+  size_t len;
+  uint8_t id[32];
+  sm_mesh *mesh;
+} shape;
+
+static char g_dir[512], g_log[600];
+static pid_t g_pid = -1;
+static int g_port;
+/* Read-only after setup, shared by the client threads. */
+static shape g_x, g_y, g_z;
+static int32_t *g_ref_map;
+static sm_distance_parts g_ref_d;
+
+/* ------------------------------------------------------------------ daemon */
+
+static void sleep_us(long us) {
+  struct timespec ts = {us / 1000000, (us % 1000000) * 1000};
+  while (nanosleep(&ts, &ts) && errno == EINTR) {
+  }
+}
+
+static void kill_daemon(void) {
+  if (g_pid > 0) {
+    kill(g_pid, SIGKILL);
+    waitpid(g_pid, NULL, 0);
+    g_pid = -1;
+  }
+}
+
+static void on_alarm(int sig) {
+  (void)sig;
+  static const char m[] = "test_server_concurrency: global timeout\n";
+  ssize_t w = write(2, m, sizeof m - 1);
+  (void)w;
+  if (g_pid > 0) kill(g_pid, SIGKILL);
+  _exit(1);
+}
+
+/* Starts the daemon with the common flags plus extra (space-separated); returns its port. */
+static int start_daemon(const char *extra) {
+  snprintf(g_log, sizeof g_log, "%s/daemon.log", g_dir);
+  char datadir[600];
+  snprintf(datadir, sizeof datadir, "%s/data", g_dir);
+  unlink(g_log);
+  pid_t pid = fork();
+  REQUIRE(pid >= 0);
+  if (pid == 0) {
+    int fd = open(g_log, O_WRONLY | O_CREAT | O_TRUNC, 0600);
+    if (fd < 0) _exit(127);
+    dup2(fd, 2);
+    close(fd);
+    int nul = open("/dev/null", O_RDWR);
+    if (nul >= 0) {
+      dup2(nul, 0);
+      dup2(nul, 1);
+      close(nul);
+    }
+    char *argv[40];
+    int n = 0;
+    argv[n++] = (char *)SM_SERVER_BIN;
+    char *args[] = {"--port", "0", "--data-dir", datadir, "--default-k", "30", "--drain-ms",
+                    "5000", NULL};
+    for (int i = 0; args[i]; i++) argv[n++] = args[i];
+    char ebuf[256];
+    snprintf(ebuf, sizeof ebuf, "%s", extra ? extra : "");
+    for (char *t = strtok(ebuf, " "); t && n < 38; t = strtok(NULL, " ")) argv[n++] = t;
+    argv[n] = NULL;
+    execv(argv[0], argv);
+    _exit(127);
+  }
+  g_pid = pid;
+  for (int tries = 0; tries < 1200; tries++) {
+    FILE *f = fopen(g_log, "r");
+    char line[1024];
+    int port = -1;
+    while (f && fgets(line, sizeof line, f)) {
+      char *p = strstr(line, "msg=listening port=");
+      if (p) port = atoi(p + strlen("msg=listening port="));
+    }
+    if (f) fclose(f);
+    if (port > 0) return port;
+    int st;
+    if (waitpid(pid, &st, WNOHANG) == pid) {
+      g_pid = -1;
+      fprintf(stderr, "daemon exited early (status %d)\n", st);
+      return -1;
+    }
+    sleep_us(50000);
+  }
+  return -1;
+}
+
+static int stop_daemon(void) {
+  kill(g_pid, SIGTERM);
+  int st = 0;
+  for (int i = 0; i < 1200; i++) {
+    if (waitpid(g_pid, &st, WNOHANG) == g_pid) {
+      g_pid = -1;
+      return WIFEXITED(st) ? WEXITSTATUS(st) : 128 + WTERMSIG(st);
+    }
+    sleep_us(50000);
+  }
+  kill_daemon();
+  return -1;
+}
+
+/* ------------------------------------------------------------------ wire */
+
+/* -1 on failure (thread-safe: no REQUIRE). */
+static int connect_to(int port) {
+  int fd = socket(AF_INET, SOCK_STREAM, 0);
+  if (fd < 0) return -1;
+  struct sockaddr_in a;
+  memset(&a, 0, sizeof a);
+  a.sin_family = AF_INET;
+  a.sin_port = htons((uint16_t)port);
+  a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  if (connect(fd, (struct sockaddr *)&a, sizeof a)) {
+    close(fd);
+    return -1;
+  }
+  struct timeval tv = {IO_TIMEOUT_S, 0};
+  setsockopt(fd, SOL_SOCKET, SO_RCVTIMEO, &tv, sizeof tv);
+  setsockopt(fd, SOL_SOCKET, SO_SNDTIMEO, &tv, sizeof tv);
+  return fd;
+}
+
+static int send_all(int fd, const void *b, size_t n) {
+  const uint8_t *p = b;
+  while (n) {
+    ssize_t w = send(fd, p, n, MSG_NOSIGNAL);
+    if (w < 0 && errno == EINTR) continue;
+    if (w <= 0) return -1;
+    p += w;
+    n -= (size_t)w;
+  }
+  return 0;
+}
+
+static int recv_all(int fd, void *b, size_t n) {
+  uint8_t *p = b;
+  while (n) {
+    ssize_t r = recv(fd, p, n, 0);
+    if (r < 0 && errno == EINTR) continue;
+    if (r <= 0) return -1;
+    p += r;
+    n -= (size_t)r;
+  }
+  return 0;
+}
+
+typedef struct frame {
+  sm_proto_header h;
+  uint8_t *buf;
+  const uint8_t *body;
+  uint32_t body_len;
+} frame;
+
+static int recv_frame(int fd, frame *f) {
+  memset(f, 0, sizeof *f);
+  uint8_t hdr[SM_PROTO_HEADER_LEN];
+  if (recv_all(fd, hdr, sizeof hdr)) return -1;
+  if (sm_proto_parse_header(hdr, sizeof hdr, UINT32_MAX, &f->h) != SM_PROTO_HEADER_LEN) return -1;
+  f->buf = malloc(SM_PROTO_HEADER_LEN + (size_t)f->h.payload_len);
+  if (!f->buf) return -1;
+  memcpy(f->buf, hdr, sizeof hdr);
+  if (recv_all(fd, f->buf + SM_PROTO_HEADER_LEN, f->h.payload_len)) {
+    free(f->buf);
+    f->buf = NULL;
+    return -1;
+  }
+  sm_proto_frame pf;
+  ptrdiff_t n = sm_proto_parse_frame(f->buf, SM_PROTO_HEADER_LEN + f->h.payload_len, UINT32_MAX, &pf);
+  if (n < 0) {
+    free(f->buf);
+    f->buf = NULL;
+    return -1;
+  }
+  f->body = pf.body;
+  f->body_len = pf.body_len;
+  return 0;
+}
+
+static void frame_free(frame *f) {
+  free(f->buf);
+  f->buf = NULL;
+}
+
+static sm_proto_header req_hdr(uint32_t rid) {
+  sm_proto_header h;
+  memset(&h, 0, sizeof h);
+  h.request_id = rid;
+  return h;
+}
+
+/* Request kinds. */
+enum { R_PING, R_HAS, R_MATCH, R_DIST, R_PREP, R_STATS };
+
+typedef struct req {
+  int kind;
+  const shape *a;  /* HAS/PREPARE id, MATCH/DISTANCE x */
+  const shape *b;  /* MATCH/DISTANCE y */
+  uint64_t opaque; /* PING */
+  int k;           /* PREPARE k_lb = k_elastic (0 = default) */
+} req;
+
+/* Encodes r with request id rid at out (cap bytes); returns the length or -1. */
+static ptrdiff_t enc_req(uint8_t *out, size_t cap, uint32_t rid, const req *r) {
+  sm_proto_header h = req_hdr(rid);
+  switch (r->kind) {
+  case R_PING: {
+    sm_proto_ping q = {r->opaque};
+    return sm_proto_enc_ping(out, cap, &h, 0, &q);
+  }
+  case R_HAS: {
+    sm_proto_id_req q;
+    memcpy(q.id, r->a->id, 32);
+    return sm_proto_enc_id_req(out, cap, &h, SM_OP_HAS_SHAPE, &q);
+  }
+  case R_MATCH:
+  case R_DIST: {
+    sm_proto_match_req q;
+    memset(&q, 0, sizeof q);
+    memcpy(q.x, r->a->id, 32);
+    memcpy(q.y, r->b->id, 32);
+    q.k1 = K;
+    q.flags = r->kind == R_MATCH
+                  ? SM_MATCH_F_WANT_YX | SM_MATCH_F_WANT_DISTANCE | SM_MATCH_F_SINGLE_START
+                  : SM_MATCH_F_SINGLE_START;
+    return sm_proto_enc_match_req(out, cap, &h, r->kind == R_MATCH ? SM_OP_MATCH : SM_OP_DISTANCE,
+                                  &q);
+  }
+  case R_PREP: {
+    sm_proto_prepare_req q;
+    memset(&q, 0, sizeof q);
+    memcpy(q.id, r->a->id, 32);
+    q.k_lb = q.k_elastic = (uint16_t)r->k;
+    return sm_proto_enc_prepare_req(out, cap, &h, &q);
+  }
+  case R_STATS:
+    h.opcode = SM_OP_STATS;
+    return sm_proto_enc_empty(out, cap, &h);
+  }
+  return -1;
+}
+
+static int send_req(int fd, uint32_t rid, const req *r) {
+  uint8_t buf[512];
+  ptrdiff_t n = enc_req(buf, sizeof buf, rid, r);
+  if (n <= 0) return -1;
+  return send_all(fd, buf, (size_t)n);
+}
+
+static const char *kind_name(int k) {
+  static const char *n[] = {"PING", "HAS", "MATCH", "DISTANCE", "PREPARE", "STATS"};
+  return n[k];
+}
+
+/* Checks an OK response's content against the reference; 0 = right. Prints why not. */
+static int verify_ok(const req *r, const frame *f, uint32_t rid) {
+  static const uint8_t ops[] = {SM_OP_PING, SM_OP_HAS_SHAPE, SM_OP_MATCH, SM_OP_DISTANCE,
+                                SM_OP_PREPARE, SM_OP_STATS};
+  if (f->h.request_id != rid || f->h.opcode != ops[r->kind] || !(f->h.flags & SM_PROTO_F_RESPONSE) ||
+      (f->h.flags & SM_PROTO_F_MORE) || f->h.status != SM_ST_OK) {
+    fprintf(stderr, "  %s rid %u: got rid %u opcode %u flags %x status %s\n", kind_name(r->kind),
+            rid, f->h.request_id, f->h.opcode, f->h.flags, sm_proto_status_name(f->h.status));
+    return -1;
+  }
+  switch (r->kind) {
+  case R_PING: {
+    sm_proto_ping p;
+    if (sm_proto_dec_ping(f->body, f->body_len, &p) || p.opaque != r->opaque) {
+      fprintf(stderr, "  PING rid %u: wrong opaque\n", rid);
+      return -1;
+    }
+    return 0;
+  }
+  case R_HAS: {
+    sm_proto_has_resp h;
+    if (sm_proto_dec_has_resp(f->body, f->body_len, &h) || !(h.flags & SM_HAS_STORED) ||
+        h.n_vertices != (uint32_t)r->a->mesh->nv || h.n_faces != (uint32_t)r->a->mesh->nf) {
+      fprintf(stderr, "  HAS rid %u: wrong answer\n", rid);
+      return -1;
+    }
+    return 0;
+  }
+  case R_MATCH: {
+    sm_proto_match_resp m;
+    if (sm_proto_dec_match_resp(f->body, f->body_len, &m) ||
+        m.map_xy.count != (uint32_t)r->a->mesh->nv || !(m.flags & SM_MATCH_R_HAS_DISTANCE) ||
+        m.map_yx.count != (uint32_t)r->b->mesh->nv) {
+      fprintf(stderr, "  MATCH rid %u: bad response layout\n", rid);
+      return -1;
+    }
+    uint32_t diff = 0;
+    for (uint32_t i = 0; i < m.map_xy.count; i++) diff += sm_proto_i32_at(&m.map_xy, i) != g_ref_map[i];
+    if (diff || fabs(m.dist.total - g_ref_d.total) > 1e-12) {
+      fprintf(stderr, "  MATCH rid %u: map differs at %u vertices, total %.17g vs %.17g\n", rid,
+              diff, m.dist.total, g_ref_d.total);
+      return -1;
+    }
+    return 0;
+  }
+  case R_DIST: {
+    sm_proto_distance_resp d;
+    if (sm_proto_dec_distance_resp(f->body, f->body_len, &d) ||
+        fabs(d.dist.total - g_ref_d.total) > 1e-12) {
+      fprintf(stderr, "  DISTANCE rid %u: wrong total\n", rid);
+      return -1;
+    }
+    return 0;
+  }
+  case R_PREP: {
+    sm_proto_prepare_resp p;
+    if (sm_proto_dec_prepare_resp(f->body, f->body_len, &p) ||
+        (r->k && (p.k_lb != r->k || p.k_elastic != r->k))) {
+      fprintf(stderr, "  PREPARE rid %u: wrong answer\n", rid);
+      return -1;
+    }
+    return 0;
+  }
+  }
+  return 0;
+}
+
+/* Prints an error frame's message (diagnostics). */
+static void print_error(const char *what, const frame *f) {
+  sm_proto_error e;
+  if (f->h.status && !sm_proto_dec_error(f->body, f->body_len, &e))
+    fprintf(stderr, "  %s -> %s: %.*s\n", what, sm_proto_status_name(f->h.status), (int)e.msg_len,
+            e.msg);
+}
+
+/* One request, one response (no other request in flight); returns the status or -1. */
+static int call(int fd, uint32_t rid, const req *r, int verify) {
+  if (send_req(fd, rid, r)) return -1;
+  frame f;
+  if (recv_frame(fd, &f)) return -1;
+  int st = f.h.status;
+  if (f.h.request_id != rid) st = -1;
+  if (st == 0 && verify && verify_ok(r, &f, rid)) st = -1;
+  if (st > 0 && st != SM_ST_BUSY) print_error(kind_name(r->kind), &f);
+  frame_free(&f);
+  return st;
+}
+
+/* HELLO with an optional token; returns the response status (0 OK) or -1 (no answer). */
+static int hello_tok(int fd, const char *tok, sm_proto_hello_resp *out) {
+  sm_proto_hello_req q;
+  memset(&q, 0, sizeof q);
+  q.min_version = q.max_version = 1;
+  q.token = (const uint8_t *)tok;
+  q.token_len = tok ? (uint16_t)strlen(tok) : 0;
+  sm_proto_header h = req_hdr(100000);
+  uint8_t buf[512];
+  ptrdiff_t n = sm_proto_enc_hello_req(buf, sizeof buf, &h, &q);
+  if (n <= 0 || send_all(fd, buf, (size_t)n)) return -1;
+  frame f;
+  if (recv_frame(fd, &f)) return -1;
+  int st = f.h.status;
+  if (st == 0) {
+    sm_proto_hello_resp r;
+    if (f.h.opcode != SM_OP_HELLO || sm_proto_dec_hello_resp(f.body, f.body_len, &r)) st = -1;
+    else if (out) *out = r;
+  } else if (f.h.opcode != SM_OP_GOAWAY) {
+    st = -1;
+  }
+  frame_free(&f);
+  return st;
+}
+
+static int open_client(void) {
+  int fd = connect_to(g_port);
+  if (fd < 0) return -1;
+  if (hello_tok(fd, NULL, NULL) != 0) {
+    close(fd);
+    return -1;
+  }
+  return fd;
+}
+
+/* Value of a STATS counter (UINT64_MAX if absent or on error). */
+static uint64_t stat_of(int fd, const char *name) {
+  static uint32_t rid = 200000;
+  req r = {R_STATS, NULL, NULL, 0, 0};
+  if (send_req(fd, ++rid, &r)) return UINT64_MAX;
+  frame f;
+  if (recv_frame(fd, &f)) return UINT64_MAX;
+  uint64_t v = UINT64_MAX;
+  sm_proto_stats_resp s;
+  if (f.h.status == 0 && f.h.request_id == rid && !sm_proto_dec_stats_resp(f.body, f.body_len, &s))
+    for (uint32_t i = 0; i < s.count; i++) {
+      sm_proto_stat st;
+      if (!sm_proto_stat_at(&s, i, &st) && !strcmp(st.name, name)) v = st.value;
+    }
+  frame_free(&f);
+  return v;
+}
+
+/* 1 if the peer closed (EOF) within the read timeout. */
+static int peer_closed(int fd) {
+  uint8_t b;
+  for (;;) {
+    ssize_t r = recv(fd, &b, 1, 0);
+    if (r < 0 && errno == EINTR) continue;
+    return r == 0 || (r < 0 && errno == ECONNRESET);
+  }
+}
+
+static uint16_t put(int fd, const shape *s) {
+  sm_proto_put_req q;
+  memset(&q, 0, sizeof q);
+  memcpy(q.id, s->id, 32);
+  q.draco = s->drc;
+  q.draco_len = (uint32_t)s->len;
+  sm_proto_header h = req_hdr(300000);
+  size_t cap = s->len + 256;
+  uint8_t *buf = malloc(cap);
+  REQUIRE(buf);
+  ptrdiff_t n = sm_proto_enc_put_req(buf, cap, &h, &q);
+  REQUIRE(n > 0 && send_all(fd, buf, (size_t)n) == 0);
+  free(buf);
+  frame f;
+  REQUIRE(recv_frame(fd, &f) == 0);
+  uint16_t st = f.h.status;
+  print_error("PUT", &f);
+  frame_free(&f);
+  return st;
+}
+
+/* ------------------------------------------------------------------ data */
+
+static void make_blob(shape *s, int subdiv, unsigned seed, const double stretch[3]) {
+  sm_error err;
+  sm_mesh *m = NULL;
+  REQUIRE(sm_synth_blob(subdiv, 0.2, seed, stretch, &m, &err) == 0);
+  REQUIRE(sm_draco_encode(m, 0, &s->drc, &s->len, &err) == 0);
+  sm_mesh_destroy(m);
+  sm_sha256(s->drc, s->len, s->id);
+  REQUIRE(sm_draco_decode(s->drc, s->len, NULL, &s->mesh, &err) == 0);
+}
+
+static void local_match(const shape *x, const shape *y, int32_t **map, sm_distance_parts *d) {
+  sm_shape_opts so;
+  sm_shape_opts_default(&so);
+  so.k_lb = so.k_elastic = K;
+  sm_shape *sx = NULL, *sy = NULL;
+  sm_error err;
+  REQUIRE(sm_shape_prepare(x->mesh, &so, &sx, &err) == 0);
+  REQUIRE(sm_shape_prepare(y->mesh, &so, &sy, &err) == 0);
+  sm_match_opts mo;
+  sm_match_opts_default(&mo);
+  mo.k1 = K;
+  mo.multi_start = 0;
+  mo.want_yx = 1;
+  sm_match_result r;
+  REQUIRE(sm_match(sx, sy, &mo, &r, &err) == 0);
+  *map = malloc((size_t)sx->mesh->n_input * 4);
+  sm_match_to_input(sx, sy, r.T, *map);
+  REQUIRE(sm_shape_distance(sx, sy, r.T, r.T_yx, d, &err) == 0);
+  sm_match_result_free(&r);
+  sm_shape_destroy(sx);
+  sm_shape_destroy(sy);
+}
+
+static void rm_rf(const char *dir) {
+  DIR *d = opendir(dir);
+  if (!d) return;
+  struct dirent *de;
+  while ((de = readdir(d))) {
+    if (!strcmp(de->d_name, ".") || !strcmp(de->d_name, "..")) continue;
+    char p[1200];
+    snprintf(p, sizeof p, "%s/%s", dir, de->d_name);
+    struct stat st;
+    if (!lstat(p, &st) && S_ISDIR(st.st_mode)) rm_rf(p);
+    else unlink(p);
+  }
+  closedir(d);
+  rmdir(dir);
+}
+
+/* ------------------------------------------------------------------ 1. pipelined clients */
+
+typedef struct tctx {
+  int idx;
+  int fails;
+  int answered, ok, busy, limit;
+  pthread_barrier_t *bar;
+} tctx;
+
+#define TFAIL(t, ...)                                                                \
+  do {                                                                               \
+    (t)->fails++;                                                                    \
+    fprintf(stderr, "client %d: ", (t)->idx);                                        \
+    fprintf(stderr, __VA_ARGS__);                                                    \
+    fputc('\n', stderr);                                                             \
+  } while (0)
+
+static void *pipeline_client(void *arg) {
+  tctx *t = arg;
+  int fd = open_client();
+  if (fd < 0) {
+    TFAIL(t, "connect/HELLO failed");
+    return NULL;
+  }
+  /* Request ids are distinct across clients, so a response routed to the wrong
+   * connection is caught by its id as well as by its content. */
+  uint32_t base = (uint32_t)t->idx * 1000u + 1u;
+  req rq[NREQ];
+  int seen[NREQ] = {0};
+  int sent = 0, got = 0;
+  while (got < NREQ) {
+    while (sent < NREQ && sent - got < WINDOW) {
+      req *r = &rq[sent];
+      memset(r, 0, sizeof *r);
+      r->kind = (sent + t->idx) % 4; /* R_PING, R_HAS, R_MATCH, R_DIST */
+      r->a = &g_x;
+      r->b = &g_y;
+      if (r->kind == R_HAS && (sent & 1)) r->a = &g_y;
+      r->opaque = (uint64_t)t->idx << 32 | (uint64_t)(base + (uint32_t)sent);
+      if (send_req(fd, base + (uint32_t)sent, r)) {
+        TFAIL(t, "send failed");
+        goto out;
+      }
+      sent++;
+    }
+    frame f;
+    if (recv_frame(fd, &f)) {
+      TFAIL(t, "recv failed after %d responses", got);
+      goto out;
+    }
+    got++;
+    uint32_t i = f.h.request_id - base;
+    if (f.h.request_id < base || i >= (uint32_t)sent) {
+      TFAIL(t, "response with unexpected request id %u", f.h.request_id);
+    } else if (seen[i]++) {
+      TFAIL(t, "second response for request id %u", f.h.request_id);
+    } else if (verify_ok(&rq[i], &f, f.h.request_id)) {
+      print_error(kind_name(rq[i].kind), &f);
+      TFAIL(t, "wrong response for request id %u", f.h.request_id);
+    } else {
+      t->ok++;
+    }
+    frame_free(&f);
+  }
+  for (int i = 0; i < NREQ; i++)
+    if (seen[i] != 1) TFAIL(t, "request id %u answered %d times", base + (uint32_t)i, seen[i]);
+  /* Nothing extra is pending: the next frame is the answer to a fresh PING. */
+  req p = {R_PING, NULL, NULL, 0xabcdef00u + (uint64_t)t->idx, 0};
+  if (call(fd, base + 999u, &p, 1) != 0) TFAIL(t, "final PING");
+out:
+  close(fd);
+  return NULL;
+}
+
+/* ------------------------------------------------------------------ 2. single-flight */
+
+static void *prepare_client(void *arg) {
+  tctx *t = arg;
+  int fd = open_client();
+  if (fd < 0) TFAIL(t, "connect/HELLO failed");
+  pthread_barrier_wait(t->bar); /* every client connected: send together */
+  if (fd < 0) return NULL;
+  /* z (the biggest shape): its computation outlasts the dispatch of the 8 requests. */
+  req r = {R_PREP, &g_z, NULL, 0, 26};
+  if (call(fd, 7, &r, 1) != 0) TFAIL(t, "PREPARE k=26 failed");
+  close(fd);
+  return NULL;
+}
+
+/* ------------------------------------------------------------------ 3. BUSY flood */
+
+#define FLOOD 12
+
+static void *flood_client(void *arg) {
+  tctx *t = arg;
+  int fd = open_client();
+  if (fd < 0) TFAIL(t, "connect/HELLO failed");
+  pthread_barrier_wait(t->bar);
+  if (fd < 0) return NULL;
+  /* All FLOOD requests in one write: the loop sees them in one read. */
+  uint8_t buf[FLOOD * 256];
+  size_t len = 0;
+  req r = {R_DIST, &g_x, &g_y, 0, 0};
+  for (int i = 0; i < FLOOD; i++) {
+    ptrdiff_t n = enc_req(buf + len, sizeof buf - len, (uint32_t)i + 1, &r);
+    if (n <= 0) {
+      TFAIL(t, "encode");
+      close(fd);
+      return NULL;
+    }
+    len += (size_t)n;
+  }
+  if (send_all(fd, buf, len)) TFAIL(t, "send");
+  int seen[FLOOD] = {0};
+  uint32_t retry_max = 0;
+  int busy_ids[FLOOD], nb = 0;
+  for (int k = 0; k < FLOOD; k++) {
+    frame f;
+    if (recv_frame(fd, &f)) {
+      TFAIL(t, "recv failed after %d responses", k);
+      break;
+    }
+    uint32_t i = f.h.request_id - 1;
+    if (i >= FLOOD || seen[i]++) {
+      TFAIL(t, "unexpected or duplicate request id %u", f.h.request_id);
+    } else if (f.h.status == SM_ST_BUSY) {
+      sm_proto_error e;
+      if (sm_proto_dec_error(f.body, f.body_len, &e) || e.retry_after_ms == 0)
+        TFAIL(t, "BUSY without retry_after_ms");
+      else if (e.retry_after_ms > retry_max)
+        retry_max = e.retry_after_ms;
+      t->busy++;
+      busy_ids[nb++] = (int)i;
+    } else if (verify_ok(&r, &f, f.h.request_id)) {
+      print_error("DISTANCE", &f);
+      TFAIL(t, "request id %u: neither BUSY nor a right answer", f.h.request_id);
+    } else {
+      t->ok++;
+    }
+    frame_free(&f);
+  }
+  t->answered = 0;
+  for (int i = 0; i < FLOOD; i++) t->answered += seen[i] == 1;
+  /* Retrying a BUSY request (after retry_after_ms, one at a time) succeeds eventually. */
+  pthread_barrier_wait(t->bar);
+  if (nb) {
+    int st = -1;
+    for (int tries = 0; tries < 200 && st != 0; tries++) {
+      st = call(fd, 100u + (uint32_t)busy_ids[0] + 1000u * (uint32_t)tries, &r, 1);
+      if (st == SM_ST_BUSY) {
+        t->busy++;
+        sleep_us((long)retry_max * 1000);
+      } else if (st != 0) {
+        break;
+      }
+    }
+    if (st != 0) TFAIL(t, "retry of a BUSY request failed (%d)", st);
+  }
+  close(fd);
+  return NULL;
+}
+
+static void run_threads(void *(*fn)(void *), tctx *t, int n, pthread_barrier_t *bar) {
+  pthread_t th[NCLIENTS];
+  for (int i = 0; i < n; i++) {
+    memset(&t[i], 0, sizeof t[i]);
+    t[i].idx = i;
+    t[i].bar = bar;
+    REQUIRE(pthread_create(&th[i], NULL, fn, &t[i]) == 0);
+  }
+  for (int i = 0; i < n; i++) pthread_join(th[i], NULL);
+}
+
+/* ------------------------------------------------------------------ main */
+
+int main(void) {
+  signal(SIGPIPE, SIG_IGN);
+  signal(SIGALRM, on_alarm);
+  atexit(kill_daemon);
+  alarm(560);
+  openblas_set_num_threads(1);
+  snprintf(g_dir, sizeof g_dir, "%s/test_server_concurrency.XXXXXX", SM_TEST_TMP);
+  REQUIRE(mkdtemp(g_dir) != NULL);
+
+  double st1[3] = {1, 1, 1}, st2[3] = {1.3, 0.9, 1}, st3[3] = {0.8, 1.2, 1.1};
+  make_blob(&g_x, 3, 7, st1);
+  make_blob(&g_y, 3, 8, st2);
+  make_blob(&g_z, 4, 9, st3); /* bigger: fills the 1 MB cache */
+  fprintf(stderr, "shapes: blobs, x %d, y %d, z %d vertices\n", g_x.mesh->nv, g_y.mesh->nv,
+          g_z.mesh->nv);
+  local_match(&g_x, &g_y, &g_ref_map, &g_ref_d);
+  tctx t[NCLIENTS];
+  pthread_barrier_t bar;
+
+  /* ---------------- daemon A: concurrency and single-flight */
+  g_port = start_daemon("--threads 4");
+  REQUIRE(g_port > 0);
+  int fd = open_client();
+  REQUIRE(fd >= 0);
+  CHECK(put(fd, &g_x) == SM_ST_OK);
+  CHECK(put(fd, &g_y) == SM_ST_OK);
+  CHECK(put(fd, &g_z) == SM_ST_OK);
+
+  /* 1. 8 clients x 25 pipelined requests (cold cache: the first MATCHes also race to
+   * prepare x and y). */
+  run_threads(pipeline_client, t, NCLIENTS, NULL);
+  {
+    int fails = 0, ok = 0;
+    for (int i = 0; i < NCLIENTS; i++) fails += t[i].fails, ok += t[i].ok;
+    CHECK(fails == 0);
+    CHECK(ok == NCLIENTS * NREQ);
+  }
+  CHECK(stat_of(fd, "bases_computed") == 4); /* x and y, default k, once each */
+  CHECK(stat_of(fd, "inflight") == 0);
+
+  /* 2. single-flight: 8 clients PREPARE z with a new k at once. */
+  {
+    uint64_t c0 = stat_of(fd, "bases_computed"), w0 = stat_of(fd, "singleflight_waits");
+    REQUIRE(pthread_barrier_init(&bar, NULL, NCLIENTS) == 0);
+    run_threads(prepare_client, t, NCLIENTS, &bar);
+    pthread_barrier_destroy(&bar);
+    int fails = 0;
+    for (int i = 0; i < NCLIENTS; i++) fails += t[i].fails;
+    CHECK(fails == 0);
+    uint64_t c1 = stat_of(fd, "bases_computed"), w1 = stat_of(fd, "singleflight_waits");
+    CHECK_MSG(c1 == c0 + 2, "bases_computed %llu -> %llu", (unsigned long long)c0,
+              (unsigned long long)c1);
+    CHECK_MSG(w1 >= w0 + 1 && w1 != UINT64_MAX, "singleflight_waits %llu -> %llu",
+              (unsigned long long)w0, (unsigned long long)w1);
+  }
+  /* 4. still serving; z's default bases go to disk for daemon F. */
+  {
+    req d = {R_DIST, &g_x, &g_y, 0, 0};
+    CHECK(call(fd, 1, &d, 1) == 0);
+    req pz = {R_PREP, &g_z, NULL, 0, 0};
+    CHECK(call(fd, 2, &pz, 1) == 0);
+  }
+  close(fd);
+  CHECK(stop_daemon() == 0);
+
+  /* ---------------- daemon B: --queue 1 --threads 1, 4 clients flood DISTANCE */
+  g_port = start_daemon("--queue 1 --threads 1");
+  REQUIRE(g_port > 0);
+  {
+    enum { NF = 4 };
+    REQUIRE(pthread_barrier_init(&bar, NULL, NF) == 0);
+    run_threads(flood_client, t, NF, &bar);
+    pthread_barrier_destroy(&bar);
+    int fails = 0, ok = 0, busy = 0, answered = 0;
+    for (int i = 0; i < NF; i++)
+      fails += t[i].fails, ok += t[i].ok, busy += t[i].busy, answered += t[i].answered;
+    fprintf(stderr, "flood: %d answered, %d OK, %d BUSY (incl. retries)\n", answered, ok, busy);
+    CHECK(fails == 0);
+    CHECK(answered == NF * FLOOD);
+    CHECK(ok >= 1);
+    CHECK(busy >= 1);
+    fd = open_client();
+    REQUIRE(fd >= 0);
+    CHECK(stat_of(fd, "busy") == (uint64_t)busy);
+    req d = {R_DIST, &g_x, &g_y, 0, 0};
+    CHECK(call(fd, 1, &d, 1) == 0);
+    req p = {R_PING, NULL, NULL, 42, 0};
+    CHECK(call(fd, 2, &p, 1) == 0);
+    close(fd);
+  }
+  CHECK(stop_daemon() == 0);
+
+  /* ---------------- daemon C: --max-inflight 2 --threads 1 */
+  g_port = start_daemon("--max-inflight 2 --threads 1");
+  REQUIRE(g_port > 0);
+  {
+    fd = connect_to(g_port);
+    REQUIRE(fd >= 0);
+    sm_proto_hello_resp hr;
+    CHECK(hello_tok(fd, NULL, &hr) == 0);
+    CHECK(hr.max_inflight == 2);
+    /* 6 PREPAREs of new variants (slow: bases to compute) and a PING, in one write. */
+    enum { NP = 6 };
+    req rq[NP + 1];
+    uint8_t buf[(NP + 1) * 128];
+    size_t len = 0;
+    for (int i = 0; i <= NP; i++) {
+      req r = {R_PREP, i % 2 ? &g_y : &g_x, NULL, 0, 40 + i};
+      if (i == 2) r = (req){R_PING, NULL, NULL, 77, 0};
+      rq[i] = r;
+      ptrdiff_t n = enc_req(buf + len, sizeof buf - len, (uint32_t)i + 1, &rq[i]);
+      REQUIRE(n > 0);
+      len += (size_t)n;
+    }
+    REQUIRE(send_all(fd, buf, len) == 0);
+    int seen[NP + 1] = {0}, n_ok = 0, n_lim = 0, bad = 0;
+    for (int k = 0; k <= NP; k++) {
+      frame f;
+      REQUIRE(recv_frame(fd, &f) == 0);
+      uint32_t i = f.h.request_id - 1;
+      REQUIRE(i <= NP);
+      seen[i]++;
+      if (f.h.status == SM_ST_LIMIT_EXCEEDED) {
+        sm_proto_error e;
+        CHECK(sm_proto_dec_error(f.body, f.body_len, &e) == 0 && e.detail == 2);
+        CHECK(rq[i].kind == R_PREP);
+        n_lim++;
+      } else if (verify_ok(&rq[i], &f, f.h.request_id) == 0) {
+        n_ok++;
+      } else {
+        print_error(kind_name(rq[i].kind), &f);
+        bad++;
+      }
+      frame_free(&f);
+    }
+    for (int i = 0; i <= NP; i++) CHECK(seen[i] == 1);
+    fprintf(stderr, "max-inflight 2: %d OK (incl. PING), %d LIMIT_EXCEEDED\n", n_ok, n_lim);
+    CHECK(bad == 0);
+    CHECK(n_lim >= 1);
+    CHECK(n_ok >= 3); /* the PING and at least the first two PREPAREs */
+    CHECK(n_ok + n_lim == NP + 1);
+    /* Once they are answered, the connection accepts requests again. */
+    req d = {R_DIST, &g_x, &g_y, 0, 0};
+    CHECK(call(fd, 20, &d, 1) == 0);
+    close(fd);
+  }
+  CHECK(stop_daemon() == 0);
+
+  /* ---------------- daemon D: --max-conns 2 */
+  g_port = start_daemon("--max-conns 2 --threads 1");
+  REQUIRE(g_port > 0);
+  {
+    int c1 = open_client(), c2 = open_client();
+    REQUIRE(c1 >= 0 && c2 >= 0);
+    int c3 = connect_to(g_port);
+    REQUIRE(c3 >= 0);
+    frame f; /* the daemon answers at accept, before any HELLO */
+    REQUIRE(recv_frame(c3, &f) == 0);
+    CHECK(f.h.opcode == SM_OP_GOAWAY && f.h.status == SM_ST_TOO_MANY_CONNECTIONS);
+    sm_proto_error e;
+    CHECK(sm_proto_dec_error(f.body, f.body_len, &e) == 0 && e.retry_after_ms > 0 && e.detail == 2);
+    frame_free(&f);
+    CHECK(peer_closed(c3));
+    close(c3);
+    req p = {R_PING, NULL, NULL, 1, 0};
+    CHECK(call(c1, 1, &p, 1) == 0);
+    req d = {R_DIST, &g_x, &g_y, 0, 0};
+    CHECK(call(c2, 1, &d, 1) == 0);
+    /* After one closes, a new connection is accepted (once the daemon has seen the EOF:
+     * retried after the retry_after_ms the GOAWAY suggested, bounded). */
+    close(c2);
+    int st = -1;
+    for (int tries = 0; tries < 100 && st != 0; tries++) {
+      int c = connect_to(g_port);
+      REQUIRE(c >= 0);
+      st = hello_tok(c, NULL, NULL);
+      if (st == 0) CHECK(call(c, 2, &p, 1) == 0);
+      close(c);
+      if (st != 0) sleep_us(50000);
+    }
+    CHECK(st == 0);
+    CHECK(call(c1, 3, &p, 1) == 0);
+    close(c1);
+  }
+  CHECK(stop_daemon() == 0);
+
+  /* ---------------- daemon E: --token */
+  g_port = start_daemon("--token s3cret --threads 1");
+  REQUIRE(g_port > 0);
+  {
+    const char *toks[2] = {NULL, "wrong"};
+    for (int i = 0; i < 2; i++) {
+      int c = connect_to(g_port);
+      REQUIRE(c >= 0);
+      CHECK(hello_tok(c, toks[i], NULL) == SM_ST_UNAUTHORIZED);
+      CHECK(peer_closed(c));
+      close(c);
+    }
+    int c = connect_to(g_port);
+    REQUIRE(c >= 0);
+    sm_proto_hello_resp hr;
+    CHECK(hello_tok(c, "s3cret", &hr) == 0);
+    CHECK(hr.features & SM_HELLO_F_AUTH_REQUIRED);
+    req d = {R_DIST, &g_x, &g_y, 0, 0};
+    CHECK(call(c, 1, &d, 1) == 0);
+    close(c);
+  }
+  CHECK(stop_daemon() == 0);
+
+  /* ---------------- daemon F: --cache-mb 1: evictions, reloads from disk, right answers */
+  g_port = start_daemon("--cache-mb 1 --threads 2");
+  REQUIRE(g_port > 0);
+  {
+    fd = open_client();
+    REQUIRE(fd >= 0);
+    uint32_t rid = 1;
+    for (int round = 0; round < 2; round++) {
+      req pz = {R_PREP, &g_z, NULL, 0, 0};
+      CHECK(call(fd, rid++, &pz, 1) == 0);
+      req m = {R_MATCH, &g_x, &g_y, 0, 0};
+      CHECK(call(fd, rid++, &m, 1) == 0);
+      req d = {R_DIST, &g_x, &g_y, 0, 0};
+      CHECK(call(fd, rid++, &d, 1) == 0);
+    }
+    uint64_t ev = stat_of(fd, "cache_evictions"), loaded = stat_of(fd, "bases_loaded");
+    uint64_t cb = stat_of(fd, "cache_bytes");
+    fprintf(stderr, "cache 1 MB: evictions %llu, bases_loaded %llu, cache_bytes %llu\n",
+            (unsigned long long)ev, (unsigned long long)loaded, (unsigned long long)cb);
+    CHECK(ev != UINT64_MAX && ev > 0);
+    CHECK(loaded != UINT64_MAX && loaded > 6); /* z, x, y once each = 6; more = reloads */
+    CHECK(stat_of(fd, "bases_computed") == 0);  /* everything came from disk */
+    close(fd);
+  }
+  CHECK(stop_daemon() == 0);
+
+  kill_daemon();
+  if (!sm_test_failures) rm_rf(g_dir);
+  else fprintf(stderr, "kept %s for inspection\n", g_dir);
+  free(g_ref_map);
+  shape *all[3] = {&g_x, &g_y, &g_z};
+  for (int i = 0; i < 3; i++) {
+    free(all[i]->drc);
+    sm_mesh_destroy(all[i]->mesh);
+  }
+  return sm_test_finish();
+}
