@@ -52,7 +52,7 @@ static double point_term(const sm_shape *x, const double *Fx, const sm_shape *y,
   return cos_dist(ab, aa, bb);
 }
 
-static double spectrum_term(const sm_basis *a, const sm_basis *b) {
+double sm_spectrum_distance(const sm_basis *a, const sm_basis *b) {
   int ia = 0, ib = 0;
   double top_a = fabs(a->evals[a->k - 1]), top_b = fabs(b->evals[b->k - 1]);
   while (ia < a->k && a->evals[ia] <= 1e-9 * top_a) ia++;
@@ -93,8 +93,9 @@ int sm_shape_distance(const sm_shape *x, const sm_shape *y, const int32_t *T_xy,
   features(y, Fy);
   out->point_xy = point_term(x, Fx, y, Fy, T_xy);
   out->point_yx = point_term(y, Fy, x, Fx, T_yx);
-  out->spectrum_lb = spectrum_term(x->lb, y->lb);
-  out->spectrum_elastic = x->elastic && y->elastic ? spectrum_term(x->elastic, y->elastic) : -1;
+  out->spectrum_lb = sm_spectrum_distance(x->lb, y->lb);
+  out->spectrum_elastic =
+      x->elastic && y->elastic ? sm_spectrum_distance(x->elastic, y->elastic) : -1;
   double sum = out->point_xy + out->point_yx + out->spectrum_lb;
   int terms = 3;
   if (out->spectrum_elastic >= 0) {

@@ -36,4 +36,8 @@ typedef struct sm_distance_parts {
 int sm_shape_distance(const sm_shape *x, const sm_shape *y, const int32_t *T_xy,
                       const int32_t *T_yx, sm_distance_parts *out, sm_error *err);
 
+/* The spectral term alone (no map needed; a cheap pre-filter for retrieval): 1 - cos of
+ * the centered log positive eigenvalues of a and b, the first min(50, ...) of them. */
+double sm_spectrum_distance(const sm_basis *a, const sm_basis *b);
+
 #endif

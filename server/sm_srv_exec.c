@@ -348,31 +348,6 @@ static int op_match(sm_job *j, uint8_t opcode, const uint8_t *p, size_t n, resul
 
 /* ------------------------------------------------------------------ QUERY */
 
-/* The spectral term of core/sm_distance.c (centered log positive eigenvalues, K <= 50). */
-static double spectrum_term(const sm_basis *a, const sm_basis *b) {
-  int ia = 0, ib = 0;
-  double top_a = fabs(a->evals[a->k - 1]), top_b = fabs(b->evals[b->k - 1]);
-  while (ia < a->k && a->evals[ia] <= 1e-9 * top_a) ia++;
-  while (ib < b->k && b->evals[ib] <= 1e-9 * top_b) ib++;
-  int K = a->k - ia < b->k - ib ? a->k - ia : b->k - ib;
-  if (K > 50) K = 50;
-  if (K < 2) return 0.0;
-  double ma = 0, mb = 0, ab = 0, aa = 0, bb = 0;
-  for (int i = 0; i < K; i++) {
-    ma += log(a->evals[ia + i]) / K;
-    mb += log(b->evals[ib + i]) / K;
-  }
-  for (int i = 0; i < K; i++) {
-    double u = log(a->evals[ia + i]) - ma, v = log(b->evals[ib + i]) - mb;
-    ab += u * v;
-    aa += u * u;
-    bb += v * v;
-  }
-  if (aa <= 0 || bb <= 0) return 1.0;
-  double cs = ab / sqrt(aa * bb);
-  return 1.0 - (cs > 1 ? 1 : cs < -1 ? -1 : cs);
-}
-
 static int hit_cmp(const void *a, const void *b) {
   const sm_proto_hit *x = a, *y = b;
   if (x->distance < y->distance) return -1;
@@ -434,9 +409,9 @@ static int op_query(sm_job *j, const uint8_t *p, size_t n, result *r) {
     const sm_shape *x = sm_prepared_shape(px), *y = sm_prepared_shape(py);
     double dist;
     if (q.mode == SM_QUERY_SPECTRAL) {
-      double t = spectrum_term(x->lb, y->lb);
+      double t = sm_spectrum_distance(x->lb, y->lb);
       int nt = 1;
-      if (x->elastic && y->elastic) t += spectrum_term(x->elastic, y->elastic), nt++;
+      if (x->elastic && y->elastic) t += sm_spectrum_distance(x->elastic, y->elastic), nt++;
       dist = t / nt;
     } else {
       sm_match_result mr;
