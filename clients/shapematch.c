@@ -231,15 +231,6 @@ static int cmd_encode(int argc, char **argv) {
   return 0;
 }
 
-/* Input index -> cleaned index (-1 if dropped). */
-static int32_t *inverse_index(const sm_mesh *m) {
-  int32_t *inv = malloc((size_t)(m->n_input ? m->n_input : 1) * sizeof *inv);
-  if (!inv) return NULL;
-  for (int32_t i = 0; i < m->n_input; i++) inv[i] = -1;
-  for (int32_t v = 0; v < m->nv; v++) inv[m->to_input ? m->to_input[v] : v] = v;
-  return inv;
-}
-
 /* Reads lines of `ncol` integers; returns the count of rows, -1 on error (message printed). */
 static int read_index_rows(const char *path, int ncol, int32_t **out) {
   FILE *f = fopen(path, "r");
@@ -385,7 +376,8 @@ static int prepare_shape(const char *path, const sm_shape_opts *so, sm_shape **o
 /* Landmarks and initial maps come in the caller's numbering: translate to cleaned indices. */
 static int translate_inputs(const match_args *m, const sm_shape *x, const sm_shape *y,
                             int32_t **lm, int32_t **init) {
-  int32_t *ix = inverse_index(x->mesh), *iy = inverse_index(y->mesh), *rows = NULL;
+  int32_t *ix = sm_mesh_input_to_clean(x->mesh), *iy = sm_mesh_input_to_clean(y->mesh);
+  int32_t *rows = NULL;
   int rc = 0;
   if (m->landmarks) {
     int n = read_index_rows(m->landmarks, 2, &rows);

@@ -68,6 +68,14 @@ int sm_mesh_copy(const sm_mesh *m, sm_mesh **out, sm_error *err) {
   return SM_OK;
 }
 
+int32_t *sm_mesh_input_to_clean(const sm_mesh *m) {
+  int32_t *inv = malloc((size_t)(m->n_input > 0 ? m->n_input : 1) * sizeof *inv);
+  if (!inv) return NULL;
+  for (int32_t i = 0; i < m->n_input; i++) inv[i] = -1;
+  for (int32_t v = 0; v < m->nv; v++) inv[m->to_input ? m->to_input[v] : v] = v;
+  return inv;
+}
+
 void sm_mesh_destroy(sm_mesh *m) {
   if (!m) return;
   free(m->V);

@@ -63,6 +63,10 @@ int sm_limits_check(const sm_limits *lim, int64_t nv, int64_t nf, sm_error *err)
  * NULL = defaults), to_input NULL, n_input = nv, center 0, scale 1. */
 int sm_mesh_alloc(int64_t nv, int64_t nf, const sm_limits *lim, sm_mesh **out, sm_error *err);
 
+/* The inverse of the index map: a malloc'd array of n_input entries giving, for each of
+ * the caller's vertices, its index in m or -1 if cleaning dropped it. NULL on ENOMEM. */
+int32_t *sm_mesh_input_to_clean(const sm_mesh *m);
+
 /* Deep copy. */
 int sm_mesh_copy(const sm_mesh *m, sm_mesh **out, sm_error *err);
 

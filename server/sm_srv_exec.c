@@ -150,15 +150,6 @@ static int op_prepare(sm_job *j, const uint8_t *p, size_t n, result *r) {
 
 /* ------------------------------------------------------------------ MATCH / DISTANCE */
 
-/* Input index -> cleaned index (-1 if dropped). */
-static int32_t *inverse_index(const sm_mesh *m) {
-  int32_t *inv = malloc((size_t)(m->n_input ? m->n_input : 1) * sizeof *inv);
-  if (!inv) return NULL;
-  for (int32_t i = 0; i < m->n_input; i++) inv[i] = -1;
-  for (int32_t v = 0; v < m->nv; v++) inv[m->to_input ? m->to_input[v] : v] = v;
-  return inv;
-}
-
 /* Options and bases key from a MATCH/DISTANCE request. */
 static int match_opts(sm_job *j, const sm_proto_match_req *q, sm_match_opts *mo,
                       sm_store_key *key, result *r) {
@@ -220,7 +211,7 @@ static uint64_t prep_us(const sm_store_prep_info *i) {
 static int translate(const sm_proto_match_req *q, const sm_shape *x, const sm_shape *y,
                      sm_match_opts *mo, pair_ctx *c, result *r) {
   int rc = 0;
-  int32_t *ix = inverse_index(x->mesh), *iy = inverse_index(y->mesh);
+  int32_t *ix = sm_mesh_input_to_clean(x->mesh), *iy = sm_mesh_input_to_clean(y->mesh);
   if (!ix || !iy) rc = fail(r, SM_ST_INTERNAL, 0, "out of memory");
   uint32_t nl = q->landmarks.count / 2;
   if (!rc && nl) {
