@@ -41,10 +41,8 @@
 #include "sm_sha256.h"
 #include "sm_synth.h"
 #include "sm_test.h"
+#include "sm_test_daemon.h"
 
-#ifndef SM_SERVER_BIN
-#error "SM_SERVER_BIN must name the shapematchd binary"
-#endif
 
 #define K 30
 #define IO_TIMEOUT_S 120
@@ -59,8 +57,6 @@ typedef struct shape {
   sm_mesh *mesh;
 } shape;
 
-static char g_dir[512], g_log[600];
-static pid_t g_pid = -1;
 static int g_port;
 /* Read-only after setup, shared by the client threads. */
 static shape g_x, g_y, g_z;
@@ -68,20 +64,6 @@ static int32_t *g_ref_map;
 static sm_distance_parts g_ref_d;
 
 /* ------------------------------------------------------------------ daemon */
-
-static void sleep_us(long us) {
-  struct timespec ts = {us / 1000000, (us % 1000000) * 1000};
-  while (nanosleep(&ts, &ts) && errno == EINTR) {
-  }
-}
-
-static void kill_daemon(void) {
-  if (g_pid > 0) {
-    kill(g_pid, SIGKILL);
-    waitpid(g_pid, NULL, 0);
-    g_pid = -1;
-  }
-}
 
 static void on_alarm(int sig) {
   (void)sig;
@@ -92,72 +74,9 @@ static void on_alarm(int sig) {
   _exit(1);
 }
 
-/* Starts the daemon with the common flags plus extra (space-separated); returns its port. */
+/* The common flags of every daemon this test starts; extra (space-separated) adds to them. */
 static int start_daemon(const char *extra) {
-  snprintf(g_log, sizeof g_log, "%s/daemon.log", g_dir);
-  char datadir[600];
-  snprintf(datadir, sizeof datadir, "%s/data", g_dir);
-  unlink(g_log);
-  pid_t pid = fork();
-  REQUIRE(pid >= 0);
-  if (pid == 0) {
-    int fd = open(g_log, O_WRONLY | O_CREAT | O_TRUNC, 0600);
-    if (fd < 0) _exit(127);
-    dup2(fd, 2);
-    close(fd);
-    int nul = open("/dev/null", O_RDWR);
-    if (nul >= 0) {
-      dup2(nul, 0);
-      dup2(nul, 1);
-      close(nul);
-    }
-    char *argv[40];
-    int n = 0;
-    argv[n++] = (char *)SM_SERVER_BIN;
-    char *args[] = {"--port", "0", "--data-dir", datadir, "--default-k", "30", "--drain-ms",
-                    "5000", NULL};
-    for (int i = 0; args[i]; i++) argv[n++] = args[i];
-    char ebuf[256];
-    snprintf(ebuf, sizeof ebuf, "%s", extra ? extra : "");
-    for (char *t = strtok(ebuf, " "); t && n < 38; t = strtok(NULL, " ")) argv[n++] = t;
-    argv[n] = NULL;
-    execv(argv[0], argv);
-    _exit(127);
-  }
-  g_pid = pid;
-  for (int tries = 0; tries < 1200; tries++) {
-    FILE *f = fopen(g_log, "r");
-    char line[1024];
-    int port = -1;
-    while (f && fgets(line, sizeof line, f)) {
-      char *p = strstr(line, "msg=listening port=");
-      if (p) port = atoi(p + strlen("msg=listening port="));
-    }
-    if (f) fclose(f);
-    if (port > 0) return port;
-    int st;
-    if (waitpid(pid, &st, WNOHANG) == pid) {
-      g_pid = -1;
-      fprintf(stderr, "daemon exited early (status %d)\n", st);
-      return -1;
-    }
-    sleep_us(50000);
-  }
-  return -1;
-}
-
-static int stop_daemon(void) {
-  kill(g_pid, SIGTERM);
-  int st = 0;
-  for (int i = 0; i < 1200; i++) {
-    if (waitpid(g_pid, &st, WNOHANG) == g_pid) {
-      g_pid = -1;
-      return WIFEXITED(st) ? WEXITSTATUS(st) : 128 + WTERMSIG(st);
-    }
-    sleep_us(50000);
-  }
-  kill_daemon();
-  return -1;
+  return start_daemon_with("--default-k 30 --drain-ms 5000", extra);
 }
 
 /* ------------------------------------------------------------------ wire */
