@@ -14,6 +14,7 @@ PKGS=(
   libarpack2-dev           # ARPACK-ng shift-invert Lanczos
   liblapacke-dev libopenblas-dev  # dense algebra
   python3 python3-numpy python3-scipy  # reference evaluator in ../shared/tools
+  python3-matplotlib       # the evaluation suite's plots (bench/eval)
 )
 
 missing=()
