@@ -70,8 +70,10 @@ static int usage(FILE *f) {
           "sent as the HELLO token). A and B are mesh files, uploaded as needed (any\n"
           "readable format; Draco-encoded unquantized (float32), vertex order kept, so maps use the\n"
           "file's numbering), or the 64-hex ids of shapes already stored:\n"
-          "  put FILE... [--prepare]\n"
-          "        upload shapes; prints 'ID FILE' per shape (ID = SHA-256 of the Draco bytes)\n"
+          "  put FILE... [--prepare] [--inflight N]\n"
+          "        upload shapes (N requests in flight, default 4); prints 'ID FILE' per\n"
+          "        shape in argument order (ID = SHA-256 of the Draco bytes); --prepare also\n"
+          "        computes their bases on the server\n"
           "  match A B [match options] --server ...    as above, computed by the daemon;\n"
           "  distance A B [options] --server ...       --local forces the local computation\n"
           "  query A [-k N] [--mode default|spectral|full] [--json]\n"
@@ -83,7 +85,12 @@ static int usage(FILE *f) {
           "        JSON line per result on stdout as it arrives; --maps DIR also writes each\n"
           "        map to DIR/INDEX.txt; exit status 1 when an item failed (listed on stderr)\n"
           "  stats | ping\n"
-          "        the daemon's counters | round-trip time\n",
+          "        the daemon's counters | round-trip time\n"
+          "  every server command takes --timeout S: the longest wait for one answer (batch:\n"
+          "  between two answers; default: none). A request queued behind other work on the\n"
+          "  server is waited for as long as the server answers a PING sent after\n"
+          "  --io-timeout S (default 30) of silence; BUSY answers are retried after the\n"
+          "  server's hint\n",
           SM_SHELL_DEFAULT_ETA);
   return 2;
 }
@@ -491,9 +498,21 @@ static void on_sigint(int sig) {
   g_stop = 1;
 }
 
-/* Removes "--server ADDR" and "--local" from argv (compacting it); falls back to
- * $SHAPEMATCH_SERVER. *addr is NULL when no server is named or --local was given.
- * Returns -1 when --server lacks its value. */
+/* Client time limits from --timeout / --io-timeout (seconds; 0 = the library default). */
+static int g_timeout_ms = 0, g_io_timeout_ms = 0;
+
+static int parse_secs(const char *v, int *ms) {
+  char *e;
+  double d = v ? strtod(v, &e) : -1;
+  if (!v || *e || !(d >= 0) || d > 2e6) return -1;
+  *ms = (int)(d * 1000 + 0.5);
+  if (d > 0 && *ms == 0) *ms = 1;
+  return 0;
+}
+
+/* Removes "--server ADDR", "--local", "--timeout S" and "--io-timeout S" from argv
+ * (compacting it); falls back to $SHAPEMATCH_SERVER. *addr is NULL when no server is
+ * named or --local was given. Returns -1 when a flag lacks its value. */
 static int take_server(int *argc, char **argv, const char **addr) {
   int n = 0, local = 0;
   const char *a = NULL;
@@ -501,6 +520,10 @@ static int take_server(int *argc, char **argv, const char **addr) {
     if (!strcmp(argv[i], "--server")) {
       if (i + 1 >= *argc) return -1;
       a = argv[++i];
+    } else if (!strcmp(argv[i], "--timeout")) {
+      if (i + 1 >= *argc || parse_secs(argv[++i], &g_timeout_ms)) return -1;
+    } else if (!strcmp(argv[i], "--io-timeout")) {
+      if (i + 1 >= *argc || parse_secs(argv[++i], &g_io_timeout_ms) || !g_io_timeout_ms) return -1;
     } else if (!strcmp(argv[i], "--local")) local = 1;
     else argv[n++] = argv[i];
   }
@@ -527,6 +550,8 @@ static int open_client(const char *addr, const uint8_t *affinity, sm_client **c)
     o.token_len = strlen(tok);
   }
   o.affinity = affinity;
+  o.compute_timeout_ms = g_timeout_ms;
+  if (g_io_timeout_ms) o.io_timeout_ms = g_io_timeout_ms;
   o.stop = &g_stop;
   signal(SIGINT, on_sigint);
   if (sm_client_connect(addr, &o, c, &e)) return client_fail("connect", &e);
@@ -598,32 +623,192 @@ static void ref_free(shape_ref *r) {
   r->draco = NULL;
 }
 
+typedef struct strv {
+  char **v;
+  size_t n, cap;
+} strv;
+
+static int strv_push(strv *s, const char *str) {
+  if (s->n == s->cap) {
+    size_t nc = s->cap ? 2 * s->cap : 16;
+    char **v = realloc(s->v, nc * sizeof *v);
+    if (!v) return 1;
+    s->v = v;
+    s->cap = nc;
+  }
+  return !(s->v[s->n++] = strdup(str));
+}
+
+static void strv_free(strv *s) {
+  for (size_t i = 0; i < s->n; i++) free(s->v[i]);
+  free(s->v);
+}
+
+/* ---- pipelined uploads ---- */
+
+typedef struct upload_ctx {
+  shape_ref **refs;  /* refs[k] of the current batch */
+  size_t *which;     /* request -> index into refs */
+  int prepare;
+  void (*settled)(void *ud, shape_ref *r);
+  void *ud;
+} upload_ctx;
+
+static int upload_has_cb(void *ud, size_t i, const sm_client_req *req, const sm_client_resp *r) {
+  (void)req;
+  upload_ctx *u = ud;
+  shape_ref *s = u->refs[u->which[i]];
+  if (r->code) {
+    s->err = r->err;
+    s->state = -1;
+  } else if (r->has.flags & SM_HAS_STORED) {
+    s->nv = r->has.n_vertices;
+    if (!u->prepare || (r->has.flags & SM_HAS_PREPARED)) s->state = 1;
+  } else if (!s->draco) {
+    char hex[SM_CLIENT_ID_HEX_LEN + 1];
+    sm_client_id_to_hex(s->id, hex);
+    memset(&s->err, 0, sizeof s->err);
+    snprintf(s->err.msg, sizeof s->err.msg, "shape %s is not stored on the server", hex);
+    s->err.code = SM_CLIENT_ESTATUS;
+    s->err.status = SM_ST_NOT_FOUND;
+    s->state = -1;
+  }
+  if (s->state && u->settled) u->settled(u->ud, s);
+  return 0;
+}
+
+static int upload_put_cb(void *ud, size_t i, const sm_client_req *req, const sm_client_resp *r) {
+  upload_ctx *u = ud;
+  shape_ref *s = u->refs[u->which[i]];
+  if (r->code) {
+    s->err = r->err;
+    s->state = -1;
+  } else {
+    if (req->op == SM_OP_PUT_SHAPE) s->nv = r->put.n_vertices;
+    s->state = 1;
+  }
+  if (u->settled) u->settled(u->ud, s);
+  return 0;
+}
+
+/* Makes sure the server stores refs[0..n) (and, with prepare, has their default bases),
+ * pipelining up to `inflight` requests: HAS for each unresolved ref, then PUT_SHAPE (or
+ * PREPARE for a stored id) for those that need it. A request waiting in the server's queue
+ * is waited for as long as the server answers (sm_client.h); BUSY answers are retried.
+ * settled(ud, ref) runs as each ref gets its state (1 ready, -1 failed, message in
+ * ref->err). Returns 0, or 1 when the connection was lost (unsettled refs then fail). */
+static int upload_refs(sm_client *c, shape_ref **refs, size_t n, int prepare, unsigned inflight,
+                       void (*settled)(void *, shape_ref *), void *ud) {
+  sm_client_req *reqs = calloc(n ? n : 1, sizeof *reqs);
+  size_t *which = calloc(n ? n : 1, sizeof *which);
+  upload_ctx u = {refs, which, prepare, settled, ud};
+  sm_client_error e;
+  memset(&e, 0, sizeof e);
+  int rc = !reqs || !which;
+  if (rc) snprintf(e.msg, sizeof e.msg, "out of memory");
+  for (int phase = 0; !rc && phase < 2; phase++) {
+    size_t nr = 0;
+    for (size_t k = 0; k < n; k++) {
+      shape_ref *s = refs[k];
+      if (s->state) continue;
+      sm_client_req *q = &reqs[nr];
+      memset(q, 0, sizeof *q);
+      memcpy(q->x, s->id, SM_PROTO_ID_LEN);
+      if (phase == 0) q->op = SM_OP_HAS_SHAPE;
+      else if (s->draco) {
+        q->op = SM_OP_PUT_SHAPE;
+        q->draco = s->draco;
+        q->draco_len = s->len;
+        q->prepare = prepare;
+      } else q->op = SM_OP_PREPARE;
+      which[nr++] = k;
+    }
+    if (!nr) break;
+    if (sm_client_batch(c, reqs, nr, inflight, -1, phase ? upload_put_cb : upload_has_cb, &u,
+                        NULL, &e) && !sm_client_is_open(c))
+      rc = 1;
+  }
+  for (size_t k = 0; k < n; k++) /* not sent: the connection was lost or out of memory */
+    if (!refs[k]->state) {
+      refs[k]->err = e;
+      if (!refs[k]->err.msg[0]) snprintf(refs[k]->err.msg, sizeof refs[k]->err.msg, "not uploaded");
+      refs[k]->state = -1;
+      if (settled) settled(ud, refs[k]);
+    }
+  free(reqs);
+  free(which);
+  return rc;
+}
+
+typedef struct put_ctx {
+  shape_ref *refs;
+  size_t n, printed;
+  int rc;
+} put_ctx;
+
+/* Prints the settled prefix, in argument order. */
+static void put_settled(void *ud, shape_ref *r) {
+  (void)r;
+  put_ctx *p = ud;
+  while (p->printed < p->n && p->refs[p->printed].state) {
+    shape_ref *s = &p->refs[p->printed++];
+    if (s->state < 0) {
+      p->rc = client_fail(s->arg, &s->err);
+    } else {
+      char hex[SM_CLIENT_ID_HEX_LEN + 1];
+      sm_client_id_to_hex(s->id, hex);
+      printf("%s  %s\n", hex, s->arg);
+      fflush(stdout);
+    }
+    ref_free(s);
+  }
+}
+
+#define PUT_CHUNK 32 /* files encoded and held in memory at once */
+
 static int cmd_put(int argc, char **argv, const char *addr) {
-  int prepare = 0, nfiles = 0, rc = 0;
+  int prepare = 0, inflight = 4;
+  strv files = {0};
   for (int i = 0; i < argc; i++) {
     if (!strcmp(argv[i], "--prepare")) prepare = 1;
+    else if (!strcmp(argv[i], "--inflight") && i + 1 < argc) inflight = atoi(argv[++i]);
     else if (argv[i][0] == '-') return usage(stderr);
-    else nfiles++;
+    else if (strv_push(&files, argv[i])) return 1;
   }
-  if (!nfiles) return usage(stderr);
+  if (!files.n || inflight < 1) {
+    strv_free(&files);
+    return usage(stderr);
+  }
   sm_client *c;
-  if (open_client(addr, NULL, &c)) return 1;
-  for (int i = 0; i < argc; i++) {
-    if (argv[i][0] == '-') continue;
-    shape_ref r;
-    char hex[SM_CLIENT_ID_HEX_LEN + 1];
-    if (ref_load(&r, argv[i]) || ref_upload(c, &r, prepare)) {
-      rc = client_fail(argv[i], &r.err);
-      ref_free(&r);
-      if (!sm_client_is_open(c)) break;
-      continue;
+  if (open_client(addr, NULL, &c)) {
+    strv_free(&files);
+    return 1;
+  }
+  int rc = 0;
+  for (size_t at = 0; at < files.n; at += PUT_CHUNK) {
+    size_t n = files.n - at < PUT_CHUNK ? files.n - at : PUT_CHUNK;
+    shape_ref refs[PUT_CHUNK], *rp[PUT_CHUNK];
+    put_ctx p = {refs, n, 0, 0};
+    for (size_t k = 0; k < n; k++) {
+      progress("encoding %s ...", files.v[at + k]);
+      ref_load(&refs[k], files.v[at + k]);
+      rp[k] = &refs[k];
     }
-    sm_client_id_to_hex(r.id, hex);
-    printf("%s  %s\n", hex, argv[i]);
-    fflush(stdout);
-    ref_free(&r);
+    progress("%s", "");
+    put_settled(&p, NULL); /* files that failed to load, if they come first */
+    int lost = upload_refs(c, rp, n, prepare, (unsigned)inflight, put_settled, &p);
+    put_settled(&p, NULL);
+    if (p.rc) rc = 1;
+    for (size_t k = 0; k < n; k++) ref_free(&refs[k]);
+    if (lost) {
+      for (size_t k = at + n; k < files.n; k++)
+        fprintf(stderr, "shapematch: %s: not uploaded (connection lost)\n", files.v[k]);
+      rc = 1;
+      break;
+    }
   }
   sm_client_close(c);
+  strv_free(&files);
   return rc;
 }
 
@@ -841,27 +1026,6 @@ static int is_mesh_name(const char *s) {
   return 0;
 }
 
-typedef struct strv {
-  char **v;
-  size_t n, cap;
-} strv;
-
-static int strv_push(strv *s, const char *str) {
-  if (s->n == s->cap) {
-    size_t nc = s->cap ? 2 * s->cap : 16;
-    char **v = realloc(s->v, nc * sizeof *v);
-    if (!v) return 1;
-    s->v = v;
-    s->cap = nc;
-  }
-  return !(s->v[s->n++] = strdup(str));
-}
-
-static void strv_free(strv *s) {
-  for (size_t i = 0; i < s->n; i++) free(s->v[i]);
-  free(s->v);
-}
-
 static int cmp_str(const void *a, const void *b) {
   return strcmp(*(char *const *)a, *(char *const *)b);
 }
@@ -1055,14 +1219,24 @@ static int cmd_batch(int argc, char **argv, const char *addr) {
   }
   progress("%s", "");
   if (!rc) rc = open_client(addr, query ? refs[0].id : NULL, &c);
-  for (size_t j = 0; !rc && j < names.n; j++) {
-    progress("uploading %s ...", names.v[j]);
-    ref_upload(c, &refs[j], 0);
-    ref_free(&refs[j]);
-    if (!sm_client_is_open(c)) {
-      progress("%s", "");
-      rc = client_fail(names.v[j], &refs[j].err);
+  if (!rc) {
+    shape_ref **rp = calloc(names.n, sizeof *rp);
+    for (size_t j = 0; rp && j < names.n; j++) rp[j] = &refs[j];
+    progress("%s", "uploading ...");
+    if (!rp) {
+      rc = 1;
+      fprintf(stderr, "shapematch batch: out of memory\n");
+    } else if (upload_refs(c, rp, names.n, 0, (unsigned)inflight, NULL, NULL)) {
+      progress("%s", ""); /* the connection is gone: say why once */
+      rc = 1;
+      for (size_t j = 0; j < names.n; j++)
+        if (refs[j].state < 0 && refs[j].draco) {
+          client_fail(names.v[j], &refs[j].err);
+          break;
+        }
     }
+    for (size_t j = 0; j < names.n; j++) ref_free(&refs[j]);
+    free(rp);
   }
   progress("%s", "");
   size_t nreq = 0;
@@ -1099,7 +1273,7 @@ static int cmd_batch(int argc, char **argv, const char *addr) {
     }
     sm_client_error e;
     int brc = !pa || !pb ? SM_CLIENT_ENOMEM
-                         : sm_client_batch(c, reqs, nreq, (unsigned)inflight, 3, batch_cb, &bb, NULL, &e);
+                         : sm_client_batch(c, reqs, nreq, (unsigned)inflight, -1, batch_cb, &bb, NULL, &e);
     b.n_done = bb.n_done;
     b.n_failed = bb.n_failed;
     b.failed = bb.failed;

@@ -49,6 +49,8 @@ struct sm_client {
   uint32_t parse_limit;
   uint32_t *cancels; /* ids of CANCEL requests whose answers are still to be read */
   size_t n_cancels, cap_cancels;
+  uint32_t probe_rid; /* liveness PING in flight (0 = none) */
+  int64_t last_rx_ms; /* when the last frame arrived (or the last wait began) */
 };
 
 /* ---- errors ---- */
@@ -240,6 +242,7 @@ static int next_frame(sm_client *c, int64_t deadline, int watch_stop, sm_proto_f
     ptrdiff_t r = sm_proto_parse_frame(p, avail, c->parse_limit, f);
     if (r > 0) {
       c->consume += (size_t)r;
+      c->last_rx_ms = now_ms();
       if (!(f->h.flags & SM_PROTO_F_RESPONSE) || (c->version && f->h.version != c->version))
         return broken(c, seterr(err, SM_CLIENT_EPROTO, "server frame with %s",
                                 (f->h.flags & SM_PROTO_F_RESPONSE) ? "another version" : "no RESPONSE flag"));
@@ -280,6 +283,10 @@ static int side_frame(sm_client *c, const sm_proto_frame *f, sm_client_error *er
       return 1;
     }
     return status_error(c, f, err);
+  }
+  if (f->h.opcode == SM_OP_PING && c->probe_rid && f->h.request_id == c->probe_rid) {
+    c->probe_rid = 0; /* the server is alive (any status: SHUTTING_DOWN says so too) */
+    return 1;
   }
   if (f->h.opcode == SM_OP_CANCEL && !(f->h.flags & SM_PROTO_F_MORE))
     for (size_t i = 0; i < c->n_cancels; i++)
@@ -340,8 +347,45 @@ static int send_req(sm_client *c, uint8_t op, const void *m, uint32_t *rid,
   return rc;
 }
 
+/* Requests that go through the server's job queue: their answer may wait behind other
+ * clients' computations for any time, so they are not bounded by io_timeout_ms. */
 static int is_compute(uint8_t op) {
-  return op == SM_OP_PREPARE || op == SM_OP_MATCH || op == SM_OP_DISTANCE || op == SM_OP_QUERY;
+  return op == SM_OP_PREPARE || op == SM_OP_MATCH || op == SM_OP_DISTANCE ||
+         op == SM_OP_QUERY || op == SM_OP_PUT_SHAPE;
+}
+
+/* Waits for the next frame of a queued request. deadline: the caller's limit (-1 none).
+ * A queued request is not a dead connection: after io_timeout_ms without any frame the
+ * client sends a PING (the server answers it at once, without queuing it); the wait goes
+ * on while such probes are answered and fails with ETIMEOUT when one is not answered
+ * within io_timeout_ms, or when the deadline passes. Probe answers are consumed by
+ * side_frame. Silence counts from c->last_rx_ms: the last frame, or the start of the
+ * caller's wait (call, sm_client_batch). */
+static int next_frame_live(sm_client *c, int64_t deadline, int watch_stop, sm_proto_frame *f,
+                           sm_client_error *err) {
+  int io = c->o.io_timeout_ms;
+  for (;;) {
+    int64_t w = deadline;
+    if (io > 0 && (w < 0 || c->last_rx_ms + io < w)) w = c->last_rx_ms + io;
+    int rc = next_frame(c, w, watch_stop, f, err);
+    if (rc != SM_CLIENT_ETIMEOUT) return rc;
+    if (deadline >= 0 && now_ms() >= deadline)
+      return seterr(err, SM_CLIENT_ETIMEOUT, "no answer from the server within the time limit "
+                    "(%d ms)", c->o.compute_timeout_ms);
+    if (c->probe_rid) /* the connection is dead: nothing will come */
+      return broken(c, seterr(err, SM_CLIENT_ETIMEOUT, "the server stopped answering (no answer "
+                              "to a PING within %d ms)", io));
+    if (c->goaway) { /* draining: it answers or closes within its drain time */
+      c->last_rx_ms = now_ms();
+      continue;
+    }
+    sm_proto_ping m = {0};
+    uint32_t rid;
+    int src = send_req(c, SM_OP_PING, &m, &rid, err);
+    if (src) return src;
+    c->probe_rid = rid;
+    c->last_rx_ms = now_ms();
+  }
 }
 
 /* One request, one answer: *f is the OK response body (view valid until the next call). */
@@ -350,11 +394,14 @@ static int call(sm_client *c, uint8_t op, const void *m, sm_proto_frame *f, sm_c
   clear_err(err);
   int rc = send_req(c, op, m, &rid, err);
   if (rc) return rc;
-  int64_t dl = deadline_in(is_compute(op) ? c->o.compute_timeout_ms : c->o.io_timeout_ms);
+  int compute = is_compute(op);
+  c->last_rx_ms = now_ms();
+  int64_t dl = deadline_in(compute ? c->o.compute_timeout_ms : c->o.io_timeout_ms);
   for (;;) {
     /* a single call that times out or is stopped leaves an answer in flight: closing is
      * the only way to keep the stream in step (and cancels the work server-side) */
-    if ((rc = next_frame(c, dl, 1, f, err))) return c->open ? broken(c, rc) : rc;
+    rc = compute ? next_frame_live(c, dl, 1, f, err) : next_frame(c, dl, 1, f, err);
+    if (rc) return c->open ? broken(c, rc) : rc;
     int s = side_frame(c, f, err);
     if (s < 0) return s;
     if (s) continue;
@@ -920,6 +967,17 @@ typedef struct bitem {
 static int build_item(const sm_client_req *q, uint8_t *op, void *msg, sm_client_error *err) {
   *op = q->op;
   switch (q->op) {
+  case SM_OP_PUT_SHAPE: {
+    sm_proto_put_req *m = msg;
+    if (!q->draco || !q->draco_len || q->draco_len > (size_t)UINT32_MAX - 64)
+      return seterr(err, SM_CLIENT_EINVAL, "batch: PUT_SHAPE without Draco bytes (or too many)");
+    memset(m, 0, sizeof *m);
+    sm_client_shape_id(q->draco, q->draco_len, m->id);
+    m->flags = q->prepare ? SM_PUT_F_PREPARE : 0;
+    m->draco = q->draco;
+    m->draco_len = (uint32_t)q->draco_len;
+    return 0;
+  }
   case SM_OP_PING:
     ((sm_proto_ping *)msg)->opaque = 0;
     return 0;
@@ -929,7 +987,7 @@ static int build_item(const sm_client_req *q, uint8_t *op, void *msg, sm_client_
   case SM_OP_MATCH:
   case SM_OP_DISTANCE: return fill_match(q->op, q->x, q->y, q->match, msg, err);
   case SM_OP_QUERY: return fill_query(q->x, q->k, q->mode, NULL, 0, 0, msg, err);
-  default: return seterr(err, SM_CLIENT_EINVAL, "batch: opcode %u is not PING, HAS_SHAPE, PREPARE, MATCH, DISTANCE or QUERY", q->op);
+  default: return seterr(err, SM_CLIENT_EINVAL, "batch: opcode %u is not PING, PUT_SHAPE, HAS_SHAPE, PREPARE, MATCH, DISTANCE or QUERY", q->op);
   }
 }
 
@@ -944,6 +1002,14 @@ static int decode_item(sm_client *c, const sm_client_req *q, const sm_proto_fram
     break;
   }
   case SM_OP_HAS_SHAPE: rc = sm_proto_dec_has_resp(f->body, f->body_len, &r->has); break;
+  case SM_OP_PUT_SHAPE: {
+    rc = sm_proto_dec_put_resp(f->body, f->body_len, &r->put);
+    uint8_t id[SM_PROTO_ID_LEN];
+    if (!rc) sm_client_shape_id(q->draco, q->draco_len, id);
+    if (!rc && memcmp(id, r->put.id, SM_PROTO_ID_LEN))
+      return broken(c, seterr(err, SM_CLIENT_EPROTO, "PUT_SHAPE answer names another id"));
+    break;
+  }
   case SM_OP_PREPARE: rc = sm_proto_dec_prepare_resp(f->body, f->body_len, &r->prepare); break;
   case SM_OP_MATCH: {
     sm_proto_match_resp p;
@@ -995,8 +1061,10 @@ int sm_client_batch(sm_client *c, const sm_client_req *reqs, size_t n, unsigned 
   if (!it) return seterr(err, SM_CLIENT_ENOMEM, "batch of %zu", n);
   size_t next = 0, in_flight = 0, done = 0;
   int stopping = 0, rc = 0;
+  c->last_rx_ms = now_ms();
   union {
     sm_proto_ping ping;
+    sm_proto_put_req put;
     sm_proto_id_req id;
     sm_proto_prepare_req prep;
     sm_proto_match_req match;
@@ -1057,8 +1125,8 @@ int sm_client_batch(sm_client *c, const sm_client_req *reqs, size_t n, unsigned 
     if (wake >= 0 && (w < 0 || wake < w) && in_flight < inflight) w = wake;
     sm_proto_frame f;
     sm_client_error fe;
-    int frc = next_frame(c, w, !stopping, &f, &fe);
-    if (frc == SM_CLIENT_ETIMEOUT && w == wake && w != dl) continue; /* a retry is due */
+    int frc = next_frame_live(c, w, !stopping, &f, &fe);
+    if (frc == SM_CLIENT_ETIMEOUT && c->open && w == wake && w != dl) continue; /* a retry is due */
     if (frc == SM_CLIENT_ETIMEOUT) broken(c, frc);
     if (frc == SM_CLIENT_ECANCELED) { /* stop requested: cancel what is in flight, drain */
       stopping = 1;
@@ -1095,7 +1163,7 @@ int sm_client_batch(sm_client *c, const sm_client_req *reqs, size_t n, unsigned 
     memset(&r, 0, sizeof r);
     r.request_id = f.h.request_id;
     r.attempts = it[i].attempts;
-    if (f.h.status == SM_ST_BUSY && !stopping && it[i].attempts <= busy_retries) {
+    if (f.h.status == SM_ST_BUSY && !stopping && (busy_retries < 0 || it[i].attempts <= busy_retries)) {
       sm_proto_error e;
       uint32_t hint = sm_proto_dec_error(f.body, f.body_len, &e) ? 0 : e.retry_after_ms;
       it[i].state = ST_PENDING;

@@ -9,10 +9,16 @@
  *     caller decides what to show.
  *   I/O. Sockets are non-blocking and every wait is a poll() bounded by the timeouts in
  *     sm_client_opts: connect_timeout_ms for connecting, io_timeout_ms for sending and for
- *     the answer to a cheap request (HELLO, PING, STATS, PUT, HAS, DROP, CANCEL),
- *     compute_timeout_ms for the answer to PREPARE, MATCH, DISTANCE, QUERY (0 = wait as
- *     long as the server computes). While sending, the client keeps reading what the
- *     server sends, so a full pipe in both directions cannot deadlock a batch.
+ *     the answer to a request the server answers at once (HELLO, PING, STATS, HAS, DROP,
+ *     CANCEL). A request that goes through the server's job queue (PUT, PREPARE, MATCH,
+ *     DISTANCE, QUERY) may wait there behind other work for any time, which is not a dead
+ *     connection: while waiting for such an answer, after io_timeout_ms without any frame
+ *     the client sends a PING (answered at once by the server's event loop) and goes on
+ *     waiting as long as these probes are answered; an unanswered probe (io_timeout_ms)
+ *     is ETIMEOUT. compute_timeout_ms additionally bounds that wait (a single call: its
+ *     answer; a batch: the time between two answers); 0 = no bound. While sending, the
+ *     client keeps reading what the server sends, so a full pipe in both directions
+ *     cannot deadlock a batch.
  *   Request ids are chosen by the client (1, 2, ..., never 0). A single call (ping, put,
  *     match, ...) sends one request and waits for its answer. sm_client_batch keeps up to N
  *     requests in flight (pipelining, PROTOCOL.md §3) and calls back per completion, in
@@ -77,8 +83,8 @@ typedef struct sm_client sm_client;
 
 typedef struct sm_client_opts {
   int connect_timeout_ms;  /* default 10000 */
-  int io_timeout_ms;       /* default 30000 */
-  int compute_timeout_ms;  /* default 0 = none */
+  int io_timeout_ms;       /* default 30000; also the silence before a liveness PING */
+  int compute_timeout_ms;  /* default 0 = none (wait while the server answers PINGs) */
   uint32_t max_response;   /* sent in HELLO and enforced when parsing; 0 = no limit */
   const uint8_t *token;    /* HELLO token (copied), token_len <= SM_PROTO_MAX_TOKEN */
   size_t token_len;
@@ -205,12 +211,15 @@ int sm_client_cancel(sm_client *c, uint32_t request_id, sm_client_error *err);
 
 /* ---- batch: many requests pipelined on this connection ---- */
 typedef struct sm_client_req {
-  uint8_t op; /* SM_OP_PING, HAS_SHAPE, PREPARE, MATCH, DISTANCE or QUERY */
+  uint8_t op; /* SM_OP_PING, PUT_SHAPE, HAS_SHAPE, PREPARE, MATCH, DISTANCE or QUERY */
   uint8_t x[SM_PROTO_ID_LEN]; /* the shape (HAS, PREPARE, QUERY) or source (MATCH, DISTANCE) */
   uint8_t y[SM_PROTO_ID_LEN]; /* target (MATCH, DISTANCE) */
   const sm_client_match_opts *match; /* MATCH, DISTANCE; NULL = defaults */
   int k, mode;                /* QUERY: k >= 1, SM_QUERY_* (all stored shapes) */
   int k_lb, k_elastic;        /* PREPARE (0 = default; eta from match->eta if given) */
+  const uint8_t *draco;       /* PUT_SHAPE: the Draco bytes (borrowed; id computed here) */
+  size_t draco_len;
+  int prepare;                /* PUT_SHAPE: also compute the default bases */
 } sm_client_req;
 
 typedef struct sm_client_resp {
@@ -226,6 +235,7 @@ typedef struct sm_client_resp {
   uint32_t n_hits, n_considered;
   sm_proto_has_resp has;
   sm_proto_prepare_resp prepare;
+  sm_proto_put_resp put;
 } sm_client_resp;
 
 /* Called once per request, in completion order; resp is borrowed. Return 0 to go on,
@@ -236,7 +246,7 @@ typedef int (*sm_client_batch_cb)(void *ud, size_t index, const sm_client_req *r
 
 /* Sends reqs[0..n) keeping up to `inflight` (>= 1; capped by the server's max_inflight) in
  * flight. An item answered BUSY is re-sent after the server's retry hint, at most
- * busy_retries times. Item failures go to the callback and do not stop the batch; the
+ * busy_retries times (< 0: without limit; BUSY means the server is alive and working). Item failures go to the callback and do not stop the batch; the
  * return value is 0, or the error that ended the batch early (connection lost:
  * unanswered items get a callback with that code; ECANCELED after a stop). *n_failed
  * (may be NULL) counts callbacks with code != 0. */

@@ -59,15 +59,22 @@ static void on_signal(int sig) {
 
 static void usage(FILE *f) {
   fprintf(f,
-          "usage: shapematchd [--port N] [--bind ADDR] [--data-dir DIR] [--threads N]\n"
-          "                   [--cache-mb MB] [--max-payload-mb MB] [--token TOKEN]\n"
-          "                   [--metrics-port N] [--max-conns N] [--max-inflight N]\n"
-          "                   [--queue N] [--idle-timeout-ms MS] [--drain-ms MS]\n"
-          "                   [--max-vertices N] [--max-faces N] [--max-k K] [--default-k K]\n"
+          "usage: shapematchd [--config FILE] [--port N] [--bind ADDR] [--data-dir DIR]\n"
+          "                   [--threads N] [--cache-mb MB] [--max-payload-mb MB]\n"
+          "                   [--token TOKEN | --token-file FILE] [--metrics-port N]\n"
+          "                   [--max-conns N] [--max-inflight N] [--queue N]\n"
+          "                   [--idle-timeout-ms MS] [--drain-ms MS] [--max-vertices N]\n"
+          "                   [--max-faces N] [--max-k K] [--default-k K]\n"
+          "                   [--max-batch-items N] [--max-query-k N]\n"
+          "  --config FILE reads 'key = value' lines, the keys being the long flags without\n"
+          "    '--' (port = 7878, data-dir = /var/lib/shapematch, ...); '#' starts a comment;\n"
+          "    an unknown key or a bad value is an error naming the line; flags given on the\n"
+          "    command line override the file;\n"
           "  --port 0 picks a free port (logged as msg=listening port=N);\n"
           "  --data-dir defaults to $XDG_STATE_HOME/shapematch or ~/.local/state/shapematch;\n"
           "  --default-k sets the default basis size and MATCH k1 (default 100, >= 20);\n"
-          "  --token may also come from $SHAPEMATCH_TOKEN (keeps it out of ps).\n");
+          "  --token may also come from $SHAPEMATCH_TOKEN (keeps it out of ps), or from the\n"
+          "    first line of --token-file.\n");
 }
 
 static int parse_u(const char *s, unsigned long long lo, unsigned long long hi,
@@ -80,54 +87,179 @@ static int parse_u(const char *s, unsigned long long lo, unsigned long long hi,
   return 0;
 }
 
+/* Where an option came from, for messages: "--threads" or "FILE:LINE: threads". */
+typedef struct opt_src {
+  const char *file; /* NULL: the command line */
+  int line;
+} opt_src;
+
+static void opt_error(const opt_src *src, const char *key, const char *fmt, const char *v) {
+  if (src->file) fprintf(stderr, "shapematchd: %s:%d: %s: ", src->file, src->line, key);
+  else fprintf(stderr, "shapematchd: --%s: ", key);
+  fprintf(stderr, fmt, v);
+  fputc('\n', stderr);
+}
+
+/* Reads a token file's first line (without its line end). */
+static int read_token_file(const char *path, char *tok, size_t cap) {
+  FILE *f = fopen(path, "r");
+  if (!f) return -1;
+  if (!fgets(tok, (int)cap, f)) tok[0] = 0;
+  fclose(f);
+  tok[strcspn(tok, "\r\n")] = 0;
+  return 0;
+}
+
+/* Applies one option (key = long flag without "--"). tok receives a token (static
+ * storage). Returns 0, or -1 after printing a message. */
+static int apply_opt(const char *key, const char *v, sm_srv_config *c, const char **tok,
+                     const opt_src *src) {
+  static char tokbuf[4][SM_PROTO_MAX_TOKEN + 2];
+  static int ntok;
+  unsigned long long u = 0;
+  int bad = 0;
+#define NUM(name, lo, hi, dst)                                    \
+  else if (!strcmp(key, name)) {                                  \
+    bad = parse_u(v, lo, hi, &u);                                 \
+    if (!bad) dst = u;                                            \
+  }
+  if (!strcmp(key, "bind")) {
+    if (strlen(v) >= sizeof c->bind || !*v) bad = 1;
+    else snprintf(c->bind, sizeof c->bind, "%s", v);
+  } else if (!strcmp(key, "data-dir")) {
+    if (strlen(v) >= sizeof c->data_dir || !*v) bad = 1;
+    else snprintf(c->data_dir, sizeof c->data_dir, "%s", v);
+  } else if (!strcmp(key, "token")) {
+    *tok = v;
+  } else if (!strcmp(key, "token-file")) {
+    char *b = tokbuf[ntok++ & 3];
+    if (read_token_file(v, b, sizeof tokbuf[0])) {
+      opt_error(src, key, "cannot read %s", v);
+      return -1;
+    }
+    *tok = b;
+  }
+  NUM("port", 0, 65535, c->port)
+  NUM("threads", 1, 1024, c->threads)
+  NUM("cache-mb", 1, 1ull << 24, c->cache_bytes)
+  NUM("max-payload-mb", 1, 4095, c->max_payload)
+  NUM("metrics-port", 0, 65535, c->metrics_port)
+  NUM("max-conns", 1, 1000000, c->max_conns)
+  NUM("max-inflight", 1, 65536, c->max_inflight)
+  NUM("queue", 1, 1000000, c->queue_len)
+  NUM("idle-timeout-ms", 0, 86400000, c->idle_timeout_ms)
+  NUM("drain-ms", 0, 3600000, c->drain_ms)
+  NUM("max-vertices", 3, 100000000, c->max_vertices)
+  NUM("max-faces", 1, 200000000, c->max_faces)
+  NUM("max-k", 20, 65535, c->max_k)
+  NUM("default-k", 20, 65535, c->default_k)
+  NUM("max-batch-items", 1, 1000000, c->max_batch_items)
+  NUM("max-query-k", 1, 65535, c->max_query_k)
+  else {
+    if (src->file) fprintf(stderr, "shapematchd: %s:%d: unknown key '%s'\n", src->file, src->line, key);
+    else fprintf(stderr, "shapematchd: unknown flag --%s\n", key);
+    return -1;
+  }
+#undef NUM
+  if (bad) {
+    opt_error(src, key, "bad value '%s'", v);
+    return -1;
+  }
+  if (!strcmp(key, "cache-mb")) c->cache_bytes = u << 20;
+  if (!strcmp(key, "max-payload-mb")) c->max_payload = (uint32_t)(u << 20);
+  return 0;
+}
+
+static char *trim(char *s) {
+  while (*s == ' ' || *s == '\t') s++;
+  size_t n = strlen(s);
+  while (n && (s[n - 1] == ' ' || s[n - 1] == '\t' || s[n - 1] == '\r' || s[n - 1] == '\n'))
+    s[--n] = 0;
+  return s;
+}
+
+/* The config file: 'key = value' lines; '#' at the start of a line or after blank space
+ * starts a comment; blank lines are ignored. */
+static int load_config(const char *path, sm_srv_config *c, const char **tok) {
+  FILE *f = fopen(path, "r");
+  if (!f) {
+    fprintf(stderr, "shapematchd: --config %s: %s\n", path, strerror(errno));
+    return -1;
+  }
+  static char lines[64][1024]; /* values must outlive parsing (the token) */
+  char buf[1024];
+  opt_src src = {path, 0};
+  int rc = 0;
+  while (!rc && fgets(buf, sizeof buf, f)) {
+    src.line++;
+    if (!strchr(buf, '\n') && !feof(f)) {
+      fprintf(stderr, "shapematchd: %s:%d: line too long\n", path, src.line);
+      rc = -1;
+      break;
+    }
+    for (char *h = buf; (h = strchr(h, '#')); h++)
+      if (h == buf || h[-1] == ' ' || h[-1] == '\t') {
+        *h = 0;
+        break;
+      }
+    char *l = trim(buf);
+    if (!*l) continue;
+    char *eq = strchr(l, '=');
+    if (!eq) {
+      fprintf(stderr, "shapematchd: %s:%d: expected 'key = value', got '%s'\n", path, src.line, l);
+      rc = -1;
+      break;
+    }
+    *eq = 0;
+    char *key = trim(l), *val = trim(eq + 1);
+    if (!strcmp(key, "config")) {
+      fprintf(stderr, "shapematchd: %s:%d: a config file cannot name another\n", path, src.line);
+      rc = -1;
+      break;
+    }
+    if (!*key || !*val) {
+      fprintf(stderr, "shapematchd: %s:%d: %s\n", path, src.line, *key ? "missing value" : "missing key");
+      rc = -1;
+      break;
+    }
+    char *keep = lines[(src.line - 1) & 63];
+    snprintf(keep, sizeof lines[0], "%s", val);
+    rc = apply_opt(key, keep, c, tok, &src);
+  }
+  fclose(f);
+  return rc;
+}
+
 static int parse_args(int argc, char **argv, sm_srv_config *c) {
   const char *tok = getenv("SHAPEMATCH_TOKEN");
+  /* first --help and --config: the file's values are overridden by the other flags */
   for (int i = 1; i < argc; i++) {
-    const char *a = argv[i];
-    if (!strcmp(a, "--help") || !strcmp(a, "-h")) {
+    if (!strcmp(argv[i], "--help") || !strcmp(argv[i], "-h")) {
       usage(stdout);
       exit(0);
     }
+    if (!strcmp(argv[i], "--config")) {
+      if (i + 1 >= argc) {
+        fprintf(stderr, "shapematchd: --config needs a value\n");
+        return -1;
+      }
+      if (load_config(argv[++i], c, &tok)) return -1;
+    }
+  }
+  opt_src cl = {NULL, 0};
+  for (int i = 1; i < argc; i++) {
+    const char *a = argv[i];
     if (i + 1 >= argc) {
       fprintf(stderr, "shapematchd: %s needs a value\n", a);
       return -1;
     }
     const char *v = argv[++i];
-    unsigned long long u = 0;
-    int bad = 0;
-#define NUM(flag, lo, hi, dst)                                   \
-  else if (!strcmp(a, flag)) {                                   \
-    bad = parse_u(v, lo, hi, &u);                                \
-    if (!bad) dst = u;                                           \
-  }
-    if (!strcmp(a, "--bind")) snprintf(c->bind, sizeof c->bind, "%s", v);
-    else if (!strcmp(a, "--data-dir")) snprintf(c->data_dir, sizeof c->data_dir, "%s", v);
-    else if (!strcmp(a, "--token")) tok = v;
-    NUM("--port", 0, 65535, c->port)
-    NUM("--threads", 1, 1024, c->threads)
-    NUM("--cache-mb", 1, 1ull << 24, c->cache_bytes)
-    NUM("--max-payload-mb", 1, 4095, c->max_payload)
-    NUM("--metrics-port", 0, 65535, c->metrics_port)
-    NUM("--max-conns", 1, 1000000, c->max_conns)
-    NUM("--max-inflight", 1, 65536, c->max_inflight)
-    NUM("--queue", 1, 1000000, c->queue_len)
-    NUM("--idle-timeout-ms", 0, 86400000, c->idle_timeout_ms)
-    NUM("--drain-ms", 0, 3600000, c->drain_ms)
-    NUM("--max-vertices", 3, 100000000, c->max_vertices)
-    NUM("--max-faces", 1, 200000000, c->max_faces)
-    NUM("--max-k", 20, 65535, c->max_k)
-    NUM("--default-k", 20, 65535, c->default_k)
-    else {
+    if (!strcmp(a, "--config")) continue;
+    if (strncmp(a, "--", 2) || !a[2]) {
       fprintf(stderr, "shapematchd: unknown flag %s\n", a);
       return -1;
     }
-#undef NUM
-    if (bad) {
-      fprintf(stderr, "shapematchd: bad value for %s: %s\n", a, v);
-      return -1;
-    }
-    if (!strcmp(a, "--cache-mb")) c->cache_bytes = u << 20;
-    if (!strcmp(a, "--max-payload-mb")) c->max_payload = (uint32_t)(u << 20);
+    if (apply_opt(a + 2, v, c, &tok, &cl)) return -1;
   }
   if (tok) {
     size_t n = strlen(tok);
@@ -135,9 +267,11 @@ static int parse_args(int argc, char **argv, sm_srv_config *c) {
       fprintf(stderr, "shapematchd: token longer than %u bytes\n", SM_PROTO_MAX_TOKEN);
       return -1;
     }
-    memcpy(c->token, tok, n);
-    c->token_len = n;
-    c->has_token = 1;
+    if (n) {
+      memcpy(c->token, tok, n);
+      c->token_len = n;
+      c->has_token = 1;
+    }
   }
   if ((uint32_t)c->default_k > c->max_k) c->max_k = (uint32_t)c->default_k;
   return 0;
@@ -148,7 +282,7 @@ int main(int argc, char **argv) {
   memset(&s, 0, sizeof s);
   sm_srv_config_default(&s.cfg);
   if (parse_args(argc, argv, &s.cfg)) {
-    usage(stderr);
+    fprintf(stderr, "shapematchd: see shapematchd --help\n");
     return 2;
   }
   sm_met.start_ns = sm_srv_now_ns();

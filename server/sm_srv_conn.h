@@ -77,6 +77,8 @@ struct sm_job {
   uint32_t body_len;
   _Atomic int cancel; /* 1 CANCEL or disconnect, 2 drain budget spent */
   int deadline_hit;   /* worker only */
+  struct sm_job *parent; /* a unit of a fanned-out request (sm_srv_exec): the request whose
+                            cancel flag also applies; NULL for a request */
   uint64_t recv_ns, deadline_ns;
 };
 

@@ -2,6 +2,7 @@
 #include "sm_srv_exec.h"
 
 #include <math.h>
+#include <pthread.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -48,7 +49,8 @@ static uint8_t *room(result *r, size_t n) {
 
 static int cancel_cb(void *ud) {
   sm_job *j = ud;
-  if (atomic_load_explicit(&j->cancel, memory_order_relaxed)) return 1;
+  for (sm_job *a = j; a; a = a->parent) /* a unit also stops with its request */
+    if (atomic_load_explicit(&a->cancel, memory_order_relaxed)) return 1;
   if (j->deadline_ns && sm_srv_now_ns() > j->deadline_ns) {
     j->deadline_hit = 1;
     return 1;
@@ -337,98 +339,380 @@ static int op_match(sm_job *j, uint8_t opcode, const uint8_t *p, size_t n, resul
   return rc;
 }
 
-/* ------------------------------------------------------------------ QUERY */
+/* ------------------------------------------------------------------ fan-out
+ *
+ * DESIGN. A BATCH (its items) and a QUERY (its candidates) are split into units that run
+ * on the whole pool. fan_start makes W = min(threads, units) runner jobs; a runner claims
+ * the next unit (atomic counter), runs it, and then goes back to the *tail* of the job
+ * queue if units remain, instead of looping. So one request never holds a worker for more
+ * than one unit at a time and never has more than W runners queued: a request from
+ * another client that arrives meanwhile waits for at most W units of each running fan
+ * before a worker takes it. Runners enter the queue with sm_pool_submit_force: the
+ * request itself was admitted (or answered BUSY) by the loop through the bounded queue,
+ * and its W runners are a bounded footprint that must not fail half-way. The runner that
+ * completes the last unit calls finish(), which posts the final frame (or starts the next
+ * phase, QUERY default mode); after that nothing touches the request's job, which the loop
+ * may free. The fan struct lives until its last runner has left (refs).
+ * Each unit runs with its own sm_job context (unit_job: own deadline and deadline_hit,
+ * parent = the request), so cancelling the request cancels every unit not yet finished. */
 
-static int hit_cmp(const void *a, const void *b) {
-  const sm_proto_hit *x = a, *y = b;
-  if (x->distance < y->distance) return -1;
-  if (x->distance > y->distance) return 1;
+typedef void (*fan_unit_fn)(void *ctx, uint32_t i, sm_job *uj);
+typedef void (*fan_finish_fn)(void *ctx);
+
+typedef struct fan {
+  sm_server *srv;
+  sm_job *job;
+  uint32_t n;
+  _Atomic uint32_t next, done;
+  _Atomic int refs;
+  _Atomic uint64_t workers; /* bit w: worker w ran a unit (w < 64) */
+  fan_unit_fn unit;
+  fan_finish_fn finish;
+  void *ctx;
+} fan;
+
+typedef struct runner {
+  sm_pool_job base; /* first member */
+  fan *f;
+} runner;
+
+static void unit_job(sm_job *uj, sm_job *parent) {
+  memset(uj, 0, sizeof *uj);
+  atomic_init(&uj->cancel, 0);
+  uj->srv = parent->srv;
+  uj->rid = parent->rid;
+  uj->opcode = parent->opcode;
+  uj->max_response = parent->max_response;
+  uj->recv_ns = parent->recv_ns;
+  uj->deadline_ns = parent->deadline_ns;
+  uj->parent = parent;
+}
+
+static void fan_unref(fan *f) {
+  if (atomic_fetch_sub(&f->refs, 1) == 1) free(f);
+}
+
+static void runner_run(sm_pool_job *pj) {
+  runner *r = (runner *)pj;
+  fan *f = r->f;
+  for (;;) {
+    uint32_t i = atomic_fetch_add(&f->next, 1);
+    if (i >= f->n) break;
+    int w = sm_pool_worker_index();
+    if (w >= 0 && w < 64) atomic_fetch_or(&f->workers, 1ull << w);
+    sm_met_add(&sm_met.fanout_units, 1);
+    sm_job uj;
+    unit_job(&uj, f->job);
+    f->unit(f->ctx, i, &uj);
+    if (atomic_fetch_add(&f->done, 1) + 1 == f->n) {
+      sm_met_max(&sm_met.fanout_workers_max,
+                 (uint64_t)__builtin_popcountll(atomic_load(&f->workers)));
+      f->finish(f->ctx); /* the request's job may be gone after this */
+    }
+    if (atomic_load(&f->next) >= f->n) break;
+    if (sm_pool_submit_force(f->srv->pool, &r->base) == 0) return; /* back to the tail */
+    /* the pool is stopping: finish the units here */
+  }
+  free(r);
+  fan_unref(f);
+}
+
+/* Runs n units of ctx on the pool; finish(ctx) once all are done. Called on a worker; this
+ * worker runs the first runner itself. Never fails: without memory or runners the units
+ * run here. */
+static void fan_start(sm_job *job, uint32_t n, fan_unit_fn unit, fan_finish_fn finish,
+                      void *ctx) {
+  sm_server *s = job->srv;
+  if (n == 0) {
+    finish(ctx);
+    return;
+  }
+  uint32_t w = (uint32_t)sm_pool_threads(s->pool);
+  if (w > n) w = n;
+  if (w < 1) w = 1;
+  fan *f = calloc(1, sizeof *f);
+  runner *first = f ? calloc(1, sizeof *first) : NULL;
+  if (!f || !first) { /* out of memory: run them here, in order */
+    free(f);
+    for (uint32_t i = 0; i < n; i++) {
+      sm_job uj;
+      unit_job(&uj, job);
+      unit(ctx, i, &uj);
+    }
+    finish(ctx);
+    return;
+  }
+  f->srv = s;
+  f->job = job;
+  f->n = n;
+  f->unit = unit;
+  f->finish = finish;
+  f->ctx = ctx;
+  atomic_init(&f->next, 0);
+  atomic_init(&f->done, 0);
+  atomic_init(&f->workers, 0);
+  atomic_init(&f->refs, (int)w);
+  first->base.run = runner_run;
+  first->f = f;
+  for (uint32_t k = 1; k < w; k++) {
+    runner *r = calloc(1, sizeof *r);
+    if (r) {
+      r->base.run = runner_run;
+      r->f = f;
+    }
+    if (!r || sm_pool_submit_force(s->pool, &r->base)) {
+      free(r);
+      fan_unref(f); /* refs > 0: first still holds one */
+    }
+  }
+  runner_run(&first->base);
+}
+
+/* ------------------------------------------------------------------ QUERY
+ *
+ * Modes (PROTOCOL.md 5.9): SPECTRAL ranks every candidate by the spectral distance alone;
+ * FULL matches the query against every candidate (sm_match + sm_shape_distance); DEFAULT
+ * ranks every candidate spectrally, then computes the full distance for the best
+ * QUERY_SHORTLIST(k) of them and returns those ranked by the full distance. Each
+ * candidate of a phase is one fan-out unit (preparing its bases when they are not cached
+ * is part of the unit), so a query uses the whole pool. */
+
+#define QUERY_SHORTLIST(k) ((k) * 4u > 16u ? (k) * 4u : 16u)
+
+typedef struct query_ctx {
+  sm_job *job;
+  sm_proto_query_req q;
+  uint8_t *ids;   /* nid candidate ids */
+  size_t nid;
+  uint32_t *cand; /* this phase's units: indices into ids */
+  uint32_t ncand;
+  double *dist;   /* per id */
+  uint8_t *valid; /* per id: dist holds this phase's distance */
+  int phase;      /* 0 spectral, 1 full */
+  uint32_t considered;
+  sm_store_key key;
+  sm_match_opts mo; /* template; each unit copies it with its own cancel context */
+  sm_prepared *px;
+  uint64_t t0;
+  _Atomic int failed;
+  pthread_mutex_t mu; /* err */
+  result err;
+} query_ctx;
+
+static void query_free(query_ctx *c) {
+  sm_store_release(c->job->srv->store, c->px);
+  free(c->ids);
+  free(c->cand);
+  free(c->dist);
+  free(c->valid);
+  pthread_mutex_destroy(&c->mu);
+  free(c);
+}
+
+/* Records the first failure of a unit. */
+static void query_fail(query_ctx *c, const result *r) {
+  pthread_mutex_lock(&c->mu);
+  if (!atomic_load(&c->failed)) {
+    c->err = *r;
+    atomic_store(&c->failed, 1);
+  }
+  pthread_mutex_unlock(&c->mu);
+}
+
+/* Decodes and sets up a query; NULL with r filled on a failure. */
+static query_ctx *query_begin(sm_job *j, const uint8_t *p, size_t n, result *r) {
+  sm_proto_query_req q;
+  int rc = sm_proto_dec_query_req(p, n, &q);
+  if (rc) {
+    fail(r, SM_ST_BAD_REQUEST, 0, "QUERY: %s", sm_proto_strerror(rc));
+    return NULL;
+  }
+  const sm_srv_config *cfg = &j->srv->cfg;
+  if (q.k > cfg->max_query_k) {
+    fail(r, SM_ST_LIMIT_EXCEEDED, cfg->max_query_k, "QUERY: k above max_query_k");
+    return NULL;
+  }
+  if (q.deadline_ms) j->deadline_ns = j->recv_ns + (uint64_t)q.deadline_ms * 1000000ull;
+  query_ctx *c = calloc(1, sizeof *c);
+  if (!c) {
+    fail(r, SM_ST_INTERNAL, 0, "out of memory");
+    return NULL;
+  }
+  pthread_mutex_init(&c->mu, NULL);
+  atomic_init(&c->failed, 0);
+  c->job = j;
+  c->q = q;
+  c->t0 = sm_srv_now_ns();
+  if (q.n_candidates) {
+    c->ids = malloc((size_t)q.n_candidates * 32);
+    if (c->ids) memcpy(c->ids, q.candidates, (size_t)q.n_candidates * 32);
+    c->nid = q.n_candidates;
+  } else if (sm_store_list(j->srv->store, &c->ids, &c->nid)) {
+    c->ids = NULL;
+  }
+  size_t m = c->nid ? c->nid : 1;
+  c->cand = malloc(m * sizeof *c->cand);
+  c->dist = calloc(m, sizeof *c->dist);
+  c->valid = calloc(m, 1);
+  if (!c->ids || !c->cand || !c->dist || !c->valid) {
+    fail(r, SM_ST_INTERNAL, 0, "out of memory");
+    query_free(c);
+    return NULL;
+  }
+  c->key = default_key(j->srv);
+  sm_match_opts_default(&c->mo);
+  c->mo.k1 = c->key.k_lb < c->mo.k1 ? c->key.k_lb : c->mo.k1;
+  c->mo.want_yx = 1;
+  sm_error err;
+  sm_error_clear(&err);
+  sm_store_prep_info info;
+  rc = sm_store_acquire(j->srv->store, q.id, &c->key, cancel_cb, j, &c->px, &info, &err);
+  if (rc == SM_STORE_ENOTFOUND) rc = fail(r, SM_ST_NOT_FOUND, 0, "QUERY: shape not stored");
+  else if (rc) rc = fail_core(r, j, rc, &err, "QUERY");
+  if (rc) {
+    query_free(c);
+    return NULL;
+  }
+  /* first phase: every candidate except the query itself */
+  for (size_t i = 0; i < c->nid; i++)
+    if (memcmp(c->ids + 32 * i, q.id, 32)) c->cand[c->ncand++] = (uint32_t)i;
+  c->phase = q.mode == SM_QUERY_FULL ? 1 : 0;
+  return c;
+}
+
+static void query_unit(void *vc, uint32_t u, sm_job *uj) {
+  query_ctx *c = vc;
+  uint32_t idx = c->cand[u];
+  const uint8_t *cid = c->ids + 32 * (size_t)idx;
+  if (atomic_load(&c->failed)) return;
+  result r;
+  memset(&r, 0, sizeof r);
+  sm_error err;
+  sm_error_clear(&err);
+  if (cancel_cb(uj)) {
+    sm_error_set(&err, SM_ECANCELED, "cancelled");
+    fail_core(&r, uj, SM_ECANCELED, &err, "QUERY");
+    query_fail(c, &r);
+    return;
+  }
+  sm_store *st = uj->srv->store;
+  sm_prepared *py = NULL;
+  sm_store_prep_info iy;
+  int e = sm_store_acquire(st, cid, &c->key, cancel_cb, uj, &py, &iy, &err);
+  if (e == SM_STORE_ENOTFOUND) return; /* dropped or never stored: skipped */
+  if (e) {
+    fail_core(&r, uj, e, &err, "QUERY candidate");
+    query_fail(c, &r);
+    return;
+  }
+  const sm_shape *x = sm_prepared_shape(c->px), *y = sm_prepared_shape(py);
+  double dist;
+  if (c->phase == 0) {
+    double t = sm_spectrum_distance(x->lb, y->lb);
+    int nt = 1;
+    if (x->elastic && y->elastic) t += sm_spectrum_distance(x->elastic, y->elastic), nt++;
+    dist = t / nt;
+  } else {
+    sm_match_opts mo = c->mo;
+    mo.cancel = cancel_cb;
+    mo.cancel_ud = uj;
+    sm_match_result mr;
+    memset(&mr, 0, sizeof mr);
+    sm_distance_parts d;
+    e = sm_match(x, y, &mo, &mr, &err);
+    if (!e) e = sm_shape_distance(x, y, mr.T, mr.T_yx, &d, &err);
+    sm_match_result_free(&mr);
+    if (e) {
+      sm_store_release(st, py);
+      fail_core(&r, uj, e, &err, "QUERY match");
+      query_fail(c, &r);
+      return;
+    }
+    dist = d.total;
+  }
+  sm_store_release(st, py);
+  c->dist[idx] = dist; /* each unit owns its idx; finish reads after the fan's barrier */
+  c->valid[idx] = 1;
+}
+
+typedef struct qsort_ctx_item {
+  double d;
+  uint32_t idx;
+  const uint8_t *id;
+} qitem;
+
+static int qitem_cmp(const void *a, const void *b) {
+  const qitem *x = a, *y = b;
+  if (x->d < y->d) return -1;
+  if (x->d > y->d) return 1;
   return memcmp(x->id, y->id, 32);
 }
 
-static int op_query(sm_job *j, const uint8_t *p, size_t n, result *r) {
-  sm_proto_query_req q;
-  int rc = sm_proto_dec_query_req(p, n, &q);
-  if (rc) return fail(r, SM_ST_BAD_REQUEST, 0, "QUERY: %s", sm_proto_strerror(rc));
-  const sm_srv_config *cfg = &j->srv->cfg;
-  if (q.k > cfg->max_query_k)
-    return fail(r, SM_ST_LIMIT_EXCEEDED, cfg->max_query_k, "QUERY: k above max_query_k");
-  if (q.deadline_ms) j->deadline_ns = j->recv_ns + (uint64_t)q.deadline_ms * 1000000ull;
-  uint8_t *ids = NULL;
-  size_t nid = 0;
-  if (q.n_candidates) {
-    ids = malloc((size_t)q.n_candidates * 32);
-    if (ids) memcpy(ids, q.candidates, (size_t)q.n_candidates * 32);
-    nid = q.n_candidates;
-  } else if (sm_store_list(j->srv->store, &ids, &nid)) {
-    ids = NULL;
+/* The phase's distances, ranked; *n receives the count. NULL without memory. */
+static qitem *query_ranked(query_ctx *c, uint32_t *n) {
+  qitem *v = malloc((c->ncand ? c->ncand : 1) * sizeof *v);
+  *n = 0;
+  if (!v) return NULL;
+  for (uint32_t u = 0; u < c->ncand; u++) {
+    uint32_t idx = c->cand[u];
+    if (c->valid[idx]) v[(*n)++] = (qitem){c->dist[idx], idx, c->ids + 32 * (size_t)idx};
   }
-  if (!ids) return fail(r, SM_ST_INTERNAL, 0, "out of memory");
-  sm_store_key key = default_key(j->srv);
-  sm_match_opts mo;
-  sm_match_opts_default(&mo);
-  mo.k1 = key.k_lb < mo.k1 ? key.k_lb : mo.k1;
-  mo.want_yx = 1;
-  mo.cancel = cancel_cb;
-  mo.cancel_ud = j;
-  sm_error err;
-  sm_error_clear(&err);
-  sm_prepared *px = NULL;
-  sm_store_prep_info info;
-  rc = sm_store_acquire(j->srv->store, q.id, &key, cancel_cb, j, &px, &info, &err);
-  if (rc == SM_STORE_ENOTFOUND) rc = fail(r, SM_ST_NOT_FOUND, 0, "QUERY: shape not stored");
-  else if (rc) rc = fail_core(r, j, rc, &err, "QUERY");
-  sm_proto_hit *hits = rc ? NULL : calloc(nid ? nid : 1, sizeof *hits);
-  if (!rc && !hits) rc = fail(r, SM_ST_INTERNAL, 0, "out of memory");
-  uint32_t considered = 0;
-  for (size_t i = 0; !rc && i < nid; i++) {
-    const uint8_t *cid = ids + 32 * i;
-    if (!memcmp(cid, q.id, 32)) continue;
-    if (cancel_cb(j)) {
-      sm_error_set(&err, SM_ECANCELED, "cancelled");
-      rc = fail_core(r, j, SM_ECANCELED, &err, "QUERY");
-      break;
+  qsort(v, *n, sizeof *v, qitem_cmp);
+  return v;
+}
+
+/* After a phase: sets up the next one and returns 1, or 0 when the query is complete. */
+static int query_next_phase(query_ctx *c) {
+  if (atomic_load(&c->failed)) return 0;
+  if (c->phase == 0) {
+    uint32_t n = 0;
+    qitem *v = query_ranked(c, &n);
+    if (!v) {
+      result r;
+      memset(&r, 0, sizeof r);
+      fail(&r, SM_ST_INTERNAL, 0, "out of memory");
+      query_fail(c, &r);
+      return 0;
     }
-    sm_prepared *py = NULL;
-    sm_store_prep_info iy;
-    int e = sm_store_acquire(j->srv->store, cid, &key, cancel_cb, j, &py, &iy, &err);
-    if (e == SM_STORE_ENOTFOUND) continue;
-    if (e) {
-      rc = fail_core(r, j, e, &err, "QUERY candidate");
-      break;
+    c->considered = n;
+    if (c->q.mode == SM_QUERY_SPECTRAL) {
+      free(v);
+      return 0;
     }
-    const sm_shape *x = sm_prepared_shape(px), *y = sm_prepared_shape(py);
-    double dist;
-    if (q.mode == SM_QUERY_SPECTRAL) {
-      double t = sm_spectrum_distance(x->lb, y->lb);
-      int nt = 1;
-      if (x->elastic && y->elastic) t += sm_spectrum_distance(x->elastic, y->elastic), nt++;
-      dist = t / nt;
-    } else {
-      sm_match_result mr;
-      memset(&mr, 0, sizeof mr);
-      sm_distance_parts d;
-      e = sm_match(x, y, &mo, &mr, &err);
-      if (!e) e = sm_shape_distance(x, y, mr.T, mr.T_yx, &d, &err);
-      sm_match_result_free(&mr);
-      if (e) {
-        sm_store_release(j->srv->store, py);
-        rc = fail_core(r, j, e, &err, "QUERY match");
-        break;
-      }
-      dist = d.total;
-    }
-    sm_store_release(j->srv->store, py);
-    memcpy(hits[considered].id, cid, 32);
-    hits[considered].distance = dist;
-    considered++;
+    uint32_t keep = QUERY_SHORTLIST((uint32_t)c->q.k);
+    if (keep > n) keep = n;
+    for (uint32_t u = 0; u < c->ncand; u++) c->valid[c->cand[u]] = 0;
+    for (uint32_t u = 0; u < keep; u++) c->cand[u] = v[u].idx;
+    c->ncand = keep;
+    c->phase = 1;
+    free(v);
+    return keep > 0;
   }
-  sm_store_release(j->srv->store, px);
-  free(ids);
-  if (!rc) {
-    qsort(hits, considered, sizeof *hits, hit_cmp);
-    uint32_t count = considered < q.k ? considered : q.k;
-    sm_proto_query_resp o = {.n_considered = considered,
+  return 0;
+}
+
+/* The response (or the recorded failure); frees c. */
+static int query_end(query_ctx *c, result *r) {
+  int rc = 0;
+  if (atomic_load(&c->failed)) {
+    *r = c->err;
+    query_free(c);
+    return -1;
+  }
+  uint32_t n = 0;
+  qitem *v = query_ranked(c, &n);
+  if (c->q.mode == SM_QUERY_FULL) c->considered = n;
+  sm_job *j = c->job;
+  uint32_t count = n < c->q.k ? n : c->q.k;
+  sm_proto_hit *hits = calloc(count ? count : 1, sizeof *hits);
+  if (!v || !hits) {
+    rc = fail(r, SM_ST_INTERNAL, 0, "out of memory");
+  } else {
+    for (uint32_t i = 0; i < count; i++) {
+      memcpy(hits[i].id, v[i].id, 32);
+      hits[i].distance = v[i].d;
+    }
+    sm_proto_query_resp o = {.n_considered = c->considered,
                              .t_total_us = (sm_srv_now_ns() - j->recv_ns) / 1000,
                              .v = hits, .count = count};
     size_t need = 16 + 40 * (size_t)count;
@@ -439,8 +723,25 @@ static int op_query(sm_job *j, const uint8_t *p, size_t n, result *r) {
     else
       sm_proto_enc_query_resp(r->payload, need, NULL, &o);
   }
+  free(v);
   free(hits);
+  query_free(c);
   return rc;
+}
+
+/* QUERY inside a BATCH item: the units run here, in order (the batch already spreads its
+ * items over the pool). */
+static int op_query(sm_job *j, const uint8_t *p, size_t n, result *r) {
+  query_ctx *c = query_begin(j, p, n, r);
+  if (!c) return -1;
+  do {
+    for (uint32_t u = 0; u < c->ncand; u++) {
+      sm_job uj;
+      unit_job(&uj, j);
+      query_unit(c, u, &uj);
+    }
+  } while (query_next_phase(c));
+  return query_end(c, r);
 }
 
 /* ------------------------------------------------------------------ dispatch */
@@ -467,12 +768,14 @@ static int op_has(sm_job *j, const uint8_t *p, size_t n, result *r) {
   return 0;
 }
 
+static int cancelled_before(sm_job *j, uint8_t op, result *r) {
+  sm_error e;
+  sm_error_set(&e, SM_ECANCELED, "cancelled before it started");
+  return fail_core(r, j, SM_ECANCELED, &e, sm_proto_op_name(op));
+}
+
 static int run_op(sm_job *j, uint8_t op, const uint8_t *p, size_t n, result *r) {
-  if (cancel_cb(j)) {
-    sm_error e;
-    sm_error_set(&e, SM_ECANCELED, "cancelled before it started");
-    return fail_core(r, j, SM_ECANCELED, &e, sm_proto_op_name(op));
-  }
+  if (cancel_cb(j)) return cancelled_before(j, op, r);
   switch (op) {
   case SM_OP_PING: return op_ping(p, n, r);
   case SM_OP_HAS_SHAPE: return op_has(j, p, n, r);
@@ -509,6 +812,100 @@ static sm_wbuf *result_frame(sm_job *j, uint8_t opcode, result *r) {
   return w;
 }
 
+/* ---- top-level QUERY: its phases fanned out */
+
+static void query_fan_finish(void *vc) {
+  query_ctx *c = vc;
+  if (query_next_phase(c)) {
+    fan_start(c->job, c->ncand, query_unit, query_fan_finish, c);
+    return;
+  }
+  sm_job *j = c->job;
+  uint64_t t0 = c->t0;
+  result r;
+  memset(&r, 0, sizeof r);
+  query_end(c, &r);
+  sm_wbuf *w = result_frame(j, SM_OP_QUERY, &r);
+  free(r.base);
+  sm_met_latency((sm_srv_now_ns() - t0) / 1000);
+  post(j, w, 1);
+}
+
+static void run_query(sm_job *j) {
+  result r;
+  memset(&r, 0, sizeof r);
+  query_ctx *c = cancel_cb(j) ? (cancelled_before(j, SM_OP_QUERY, &r), NULL)
+                              : query_begin(j, j->body, j->body_len, &r);
+  if (!c) {
+    sm_wbuf *w = result_frame(j, SM_OP_QUERY, &r);
+    free(r.base);
+    post(j, w, 1);
+    return;
+  }
+  fan_start(j, c->ncand, query_unit, query_fan_finish, c);
+}
+
+/* ---- BATCH: one unit per item */
+
+typedef struct batch_ctx {
+  sm_job *job;
+  uint32_t count;
+  sm_proto_batch_item *items;
+  _Atomic uint32_t n_ok;
+  uint64_t t0;
+} batch_ctx;
+
+static void batch_unit(void *vc, uint32_t idx, sm_job *uj) {
+  batch_ctx *b = vc;
+  const sm_proto_batch_item *it = &b->items[idx];
+  result ir;
+  memset(&ir, 0, sizeof ir);
+  run_op(uj, it->opcode, it->payload, it->len, &ir);
+  uint8_t errp[12 + SM_PROTO_MAX_MSG];
+  sm_proto_batch_item_resp ip = {idx, it->opcode, NULL, 0};
+  if (ir.status) {
+    ip.len = (uint32_t)sm_error_payload(errp, ir.retry, ir.detail, ir.msg);
+    ip.payload = errp;
+  } else {
+    ip.payload = ir.payload;
+    ip.len = (uint32_t)ir.len;
+  }
+  if (!ir.status && uj->max_response && 8ull + ip.len > uj->max_response) {
+    fail(&ir, SM_ST_RESPONSE_TOO_LARGE, (uint32_t)(8 + ip.len), "item response too large");
+    ip.len = (uint32_t)sm_error_payload(errp, 0, ir.detail, ir.msg);
+    ip.payload = errp;
+  }
+  if (!ir.status) atomic_fetch_add(&b->n_ok, 1);
+  sm_proto_header h = {SM_PROTO_VERSION, SM_OP_BATCH, SM_PROTO_F_RESPONSE, uj->rid, ir.status, 0};
+  size_t cap = SM_PROTO_HEADER_LEN + 8 + ip.len + 4;
+  sm_wbuf *w = sm_wbuf_new(cap);
+  if (w) {
+    ptrdiff_t got = sm_proto_enc_batch_item_resp(w->data, cap, &h, &ip);
+    if (got <= 0 || (size_t)got > cap) {
+      free(w);
+      w = NULL;
+    } else {
+      w->len = (size_t)got;
+    }
+  }
+  if (w) post(b->job, w, 0);
+  free(ir.base);
+}
+
+static void batch_finish(void *vc) {
+  batch_ctx *b = vc;
+  sm_job *j = b->job;
+  sm_proto_batch_done d = {b->count, atomic_load(&b->n_ok)};
+  uint64_t t0 = b->t0;
+  free(b->items);
+  free(b);
+  sm_proto_header h = {SM_PROTO_VERSION, SM_OP_BATCH, SM_PROTO_F_RESPONSE, j->rid, 0, 0};
+  sm_wbuf *w = sm_wbuf_new(SM_PROTO_HEADER_LEN + 8);
+  if (w) sm_proto_enc_batch_done(w->data, w->len, &h, &d);
+  sm_met_latency((sm_srv_now_ns() - t0) / 1000);
+  post(j, w, 1);
+}
+
 static void run_batch(sm_job *j) {
   const sm_srv_config *cfg = &j->srv->cfg;
   sm_proto_batch_req b;
@@ -522,68 +919,41 @@ static void run_batch(sm_job *j) {
     fail(&r, SM_ST_LIMIT_EXCEEDED, cfg->max_batch_items, "BATCH: %u items, max_batch_items is %u",
          b.count, cfg->max_batch_items);
   }
+  batch_ctx *bc = r.status ? NULL : calloc(1, sizeof *bc);
+  if (!r.status && bc) bc->items = malloc((size_t)b.count * sizeof *bc->items);
+  if (!r.status && (!bc || !bc->items)) fail(&r, SM_ST_INTERNAL, 0, "out of memory");
   if (r.status) {
+    if (bc) free(bc->items);
+    free(bc);
     post(j, result_frame(j, SM_OP_BATCH, &r), 1);
     return;
   }
   size_t pos = 0;
-  sm_proto_batch_item it;
-  uint32_t idx = 0, n_ok = 0;
-  while (sm_proto_batch_next(&b, &pos, &it)) {
-    result ir;
-    memset(&ir, 0, sizeof ir);
-    run_op(j, it.opcode, it.payload, it.len, &ir);
-    uint8_t errp[12 + SM_PROTO_MAX_MSG];
-    sm_proto_batch_item_resp ip = {idx, it.opcode, NULL, 0};
-    if (ir.status) {
-      ip.len = (uint32_t)sm_error_payload(errp, ir.retry, ir.detail, ir.msg);
-      ip.payload = errp;
-    } else {
-      ip.payload = ir.payload;
-      ip.len = (uint32_t)ir.len;
-      n_ok++;
-    }
-    if (!ir.status && j->max_response && 8ull + ip.len > j->max_response) {
-      fail(&ir, SM_ST_RESPONSE_TOO_LARGE, (uint32_t)(8 + ip.len), "item response too large");
-      ip.len = (uint32_t)sm_error_payload(errp, 0, ir.detail, ir.msg);
-      ip.payload = errp;
-      n_ok--;
-    }
-    sm_proto_header h = {SM_PROTO_VERSION, SM_OP_BATCH, SM_PROTO_F_RESPONSE, j->rid, ir.status, 0};
-    size_t cap = SM_PROTO_HEADER_LEN + 8 + ip.len + 4;
-    sm_wbuf *w = sm_wbuf_new(cap);
-    if (w) {
-      ptrdiff_t got = sm_proto_enc_batch_item_resp(w->data, cap, &h, &ip);
-      if (got <= 0 || (size_t)got > cap) {
-        free(w);
-        w = NULL;
-      } else {
-        w->len = (size_t)got;
-      }
-    }
-    if (w) post(j, w, 0);
-    free(ir.base);
-    idx++;
-  }
-  sm_proto_batch_done d = {idx, n_ok};
-  sm_proto_header h = {SM_PROTO_VERSION, SM_OP_BATCH, SM_PROTO_F_RESPONSE, j->rid, 0, 0};
-  sm_wbuf *w = sm_wbuf_new(SM_PROTO_HEADER_LEN + 8);
-  if (w) sm_proto_enc_batch_done(w->data, w->len, &h, &d);
-  post(j, w, 1);
+  uint32_t n = 0;
+  while (n < b.count && sm_proto_batch_next(&b, &pos, &bc->items[n])) n++;
+  bc->job = j;
+  bc->count = n;
+  bc->t0 = sm_srv_now_ns();
+  atomic_init(&bc->n_ok, 0);
+  fan_start(j, n, batch_unit, batch_finish, bc);
 }
 
 void sm_exec_run(sm_pool_job *pj) {
   sm_job *j = (sm_job *)pj;
-  uint64_t t0 = sm_srv_now_ns();
   if (j->opcode == SM_OP_BATCH) {
-    run_batch(j);
-  } else {
-    result r;
-    memset(&r, 0, sizeof r);
-    run_op(j, j->opcode, j->body, j->body_len, &r);
-    sm_wbuf *w = result_frame(j, j->opcode, &r);
-    free(r.base);
-    post(j, w, 1);
+    run_batch(j); /* answers come from the fan's units; latency at its end */
+    return;
   }
+  if (j->opcode == SM_OP_QUERY) {
+    run_query(j);
+    return;
+  }
+  uint64_t t0 = sm_srv_now_ns();
+  result r;
+  memset(&r, 0, sizeof r);
+  run_op(j, j->opcode, j->body, j->body_len, &r);
+  sm_wbuf *w = result_frame(j, j->opcode, &r);
+  free(r.base);
   sm_met_latency((sm_srv_now_ns() - t0) / 1000);
+  post(j, w, 1);
 }

@@ -44,6 +44,8 @@ uint32_t sm_met_stats(struct sm_store *st, sm_proto_stat *out, uint32_t cap) {
   put(out, cap, &n, "uptime_s", (sm_srv_now_ns() - sm_met.start_ns) / 1000000000ull);
   put(out, cap, &n, "busy", sm_met_get(&sm_met.busy));
   put(out, cap, &n, "cancelled", sm_met_get(&sm_met.cancelled));
+  put(out, cap, &n, "fanout_units", sm_met_get(&sm_met.fanout_units));
+  put(out, cap, &n, "fanout_workers_max", sm_met_get(&sm_met.fanout_workers_max));
   put(out, cap, &n, "cache_bytes", ss.cache_bytes);
   put(out, cap, &n, "cache_hits", ss.cache_hits);
   put(out, cap, &n, "cache_misses", ss.cache_misses);

@@ -21,6 +21,8 @@ typedef struct sm_metrics {
   _Atomic uint64_t bytes_in, bytes_out;
   _Atomic uint64_t cancelled, deadlines;
   _Atomic uint64_t req_us_sum, req_count; /* compute request latency (worker jobs) */
+  _Atomic uint64_t fanout_units;          /* BATCH items and QUERY candidates run as units */
+  _Atomic uint64_t fanout_workers_max;    /* most distinct workers one request's units ran on */
   _Atomic uint64_t lat_bucket[8];         /* <= 1ms,10ms,100ms,1s,10s,100s,+Inf (7 used) */
   uint64_t start_ns;
 } sm_metrics;
@@ -37,6 +39,12 @@ static inline uint64_t sm_met_get(_Atomic uint64_t *c) {
   return atomic_load_explicit(c, memory_order_relaxed);
 }
 void sm_met_latency(uint64_t us);
+static inline void sm_met_max(_Atomic uint64_t *c, uint64_t v) {
+  uint64_t o = atomic_load_explicit(c, memory_order_relaxed);
+  while (o < v && !atomic_compare_exchange_weak_explicit(c, &o, v, memory_order_relaxed,
+                                                          memory_order_relaxed)) {
+  }
+}
 
 struct sm_store;
 /* Fills up to cap records (names per PROTOCOL.md 5.3 plus store counters); returns count. */

@@ -22,8 +22,20 @@ struct sm_pool {
   int efd;
 };
 
+static _Thread_local int tl_worker = -1;
+
+int sm_pool_worker_index(void) { return tl_worker; }
+
+typedef struct worker_arg {
+  sm_pool *p;
+  int index;
+} worker_arg;
+
 static void *worker(void *arg) {
-  sm_pool *p = arg;
+  worker_arg wa = *(worker_arg *)arg;
+  free(arg);
+  sm_pool *p = wa.p;
+  tl_worker = wa.index;
   openblas_set_num_threads(1);
   for (;;) {
     pthread_mutex_lock(&p->mu);
@@ -62,7 +74,10 @@ int sm_pool_create(int nthreads, int queue_cap, sm_pool **out) {
     return -ENOMEM;
   }
   for (int i = 0; i < nthreads; i++) {
-    if (pthread_create(&p->th[i], NULL, worker, p)) {
+    worker_arg *wa = malloc(sizeof *wa);
+    if (wa) *wa = (worker_arg){p, i};
+    if (!wa || pthread_create(&p->th[i], NULL, worker, wa)) {
+      free(wa);
       sm_pool_destroy(p);
       return -EAGAIN;
     }
@@ -87,13 +102,13 @@ void sm_pool_destroy(sm_pool *p) {
   free(p);
 }
 
-int sm_pool_submit(sm_pool *p, sm_pool_job *j) {
+static int submit(sm_pool *p, sm_pool_job *j, int force) {
   pthread_mutex_lock(&p->mu);
   if (p->stop) {
     pthread_mutex_unlock(&p->mu);
     return SM_POOL_ESTOPPED;
   }
-  if (p->depth >= p->cap) {
+  if (!force && p->depth >= p->cap) {
     pthread_mutex_unlock(&p->mu);
     return SM_POOL_EFULL;
   }
@@ -107,6 +122,10 @@ int sm_pool_submit(sm_pool *p, sm_pool_job *j) {
   pthread_mutex_unlock(&p->mu);
   return 0;
 }
+
+int sm_pool_submit(sm_pool *p, sm_pool_job *j) { return submit(p, j, 0); }
+int sm_pool_submit_force(sm_pool *p, sm_pool_job *j) { return submit(p, j, 1); }
+int sm_pool_threads(const sm_pool *p) { return p->nth; }
 
 int sm_pool_fd(const sm_pool *p) { return p->efd; }
 

@@ -37,6 +37,13 @@ typedef struct sm_pool sm_pool;
 int sm_pool_create(int nthreads, int queue_cap, sm_pool **out);
 void sm_pool_destroy(sm_pool *p);
 int sm_pool_submit(sm_pool *p, sm_pool_job *j);
+/* Same, ignoring queue_cap (only SM_POOL_ESTOPPED): for the runner jobs of a request that
+ * was already admitted through sm_pool_submit and re-enters the queue a bounded number of
+ * times at once (sm_srv_exec's fan-out), so admission control stays with the request. */
+int sm_pool_submit_force(sm_pool *p, sm_pool_job *j);
+int sm_pool_threads(const sm_pool *p);
+/* On a worker thread: its index 0..threads-1; elsewhere -1. */
+int sm_pool_worker_index(void);
 int sm_pool_fd(const sm_pool *p);
 void sm_pool_post(sm_pool *p, sm_pool_msg *m);
 /* Reads the eventfd counter and returns the done list (FIFO), or NULL. */
