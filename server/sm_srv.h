@@ -6,7 +6,9 @@
  *       tables, HELLO/PING/STATS/HAS/DROP/CANCEL (answered inline, never queued);
  *     - N worker threads (sm_srv_pool): PUT_SHAPE, PREPARE, MATCH, DISTANCE, QUERY, BATCH.
  *       A worker never touches an sm_conn: it reads its job (an owned copy of the request)
- *       and posts encoded response frames back through the pool's done list + eventfd;
+ *       and posts encoded response frames back through the pool's done list + eventfd.
+ *       BATCH items and QUERY candidates run as units on several workers at once
+ *       (sm_srv_exec fan-out); they share the request's job read-only, except atomics;
  *     - no other thread. Signal handlers only set sm_srv_signal_flag.
  *   Locks (in the only order they may nest; never hold one while blocking on I/O to a peer)
  *     1. store->mu   (sm_srv_store: index, prepared-shape cache, LRU, single-flight state;

@@ -649,6 +649,106 @@ static void cli_garbage(int fd, void *ud) {
   sm_client_close(c);
 }
 
+/* ---- case: queued requests are not dead connections (io_timeout 300 ms): the client
+ * probes with PING after 300 ms of silence and keeps waiting while probes are answered
+ * (a PUT answered after two probes, a pipelined PUT batch with a BUSY retry); an
+ * unanswered probe ends the wait with ETIMEOUT and closes the connection ---- */
+static void put_ok(peer *p, const sm_proto_frame *f) {
+  sm_proto_put_req q;
+  REQUIRE(sm_proto_dec_put_req(f->body, f->body_len, &q) == 0);
+  sm_proto_put_resp r = {{0}, 3, 1, 0};
+  memcpy(r.id, q.id, 32);
+  sm_proto_header h = resp_hdr(f->h.request_id);
+  SEND(p, sm_proto_enc_put_resp(g_out, sizeof g_out, &h, &r));
+}
+
+static void answer_ping(peer *p, const sm_proto_frame *f) {
+  sm_proto_ping q;
+  REQUIRE(sm_proto_dec_ping(f->body, f->body_len, &q) == 0);
+  sm_proto_header h = resp_hdr(f->h.request_id);
+  SEND(p, sm_proto_enc_ping(g_out, sizeof g_out, &h, 1, &q));
+}
+
+static void srv_queued(peer *p, void *ud) {
+  (void)ud;
+  sm_proto_frame f, put1, put2;
+  srv_hello(p, 4);
+  /* 1. a single PUT, answered after two liveness probes */
+  REQUIRE(expect(p, SM_OP_PUT_SHAPE, &f));
+  uint8_t *save = malloc(f.body_len + SM_PROTO_HEADER_LEN);
+  REQUIRE(save);
+  sm_proto_frame keep = f;
+  memcpy(save, f.body, f.body_len);
+  keep.body = save;
+  for (int i = 0; i < 2; i++) {
+    REQUIRE(expect(p, SM_OP_PING, &f));
+    answer_ping(p, &f);
+  }
+  put_ok(p, &keep);
+  free(save);
+  /* 2. a batch of two PUTs: a probe, BUSY for the first, then both answered */
+  REQUIRE(expect(p, SM_OP_PUT_SHAPE, &put1));
+  uint8_t *b1 = malloc(put1.body_len);
+  REQUIRE(b1);
+  memcpy(b1, put1.body, put1.body_len);
+  put1.body = b1;
+  REQUIRE(expect(p, SM_OP_PUT_SHAPE, &put2));
+  uint8_t *b2 = malloc(put2.body_len);
+  REQUIRE(b2);
+  memcpy(b2, put2.body, put2.body_len);
+  put2.body = b2;
+  REQUIRE(expect(p, SM_OP_PING, &f));
+  answer_ping(p, &f);
+  send_error(p, SM_OP_PUT_SHAPE, put1.h.request_id, SM_ST_BUSY, 0, 10, "queue full");
+  REQUIRE(expect(p, SM_OP_PUT_SHAPE, &f)); /* the retry */
+  put_ok(p, &f);
+  put_ok(p, &put2);
+  free(b1);
+  free(b2);
+  /* 3. a PREPARE whose probe is never answered */
+  REQUIRE(expect(p, SM_OP_PREPARE, &f));
+  REQUIRE(expect(p, SM_OP_PING, &f));
+  CHECK(peer_frame(p, &f, 5000) == 2); /* the client gives up and closes */
+}
+
+static int queued_cb(void *ud, size_t i, const sm_client_req *req, const sm_client_resp *r) {
+  (void)req;
+  int *res = ud;
+  res[i] = r->code ? -1 : r->attempts;
+  return 0;
+}
+
+static void cli_queued(int fd, void *ud) {
+  (void)ud;
+  sm_client *c = connect_fd(fd, 300);
+  REQUIRE(c);
+  sm_client_error e;
+  static const uint8_t d1[] = "draco-one", d2[] = "draco-two";
+  uint8_t id[32], want[32];
+  sm_client_shape_id(d1, sizeof d1, want);
+  int rc = sm_client_put(c, d1, sizeof d1, 1, id, NULL, &e);
+  CHECK_MSG(rc == 0, "queued put: %d %s", rc, e.msg);
+  CHECK(!memcmp(id, want, 32));
+  sm_client_req q[2];
+  memset(q, 0, sizeof q);
+  q[0].op = q[1].op = SM_OP_PUT_SHAPE;
+  q[0].draco = d1;
+  q[0].draco_len = sizeof d1;
+  q[1].draco = d2;
+  q[1].draco_len = sizeof d2;
+  q[1].prepare = 1;
+  int res[2] = {0, 0};
+  size_t nf = 9;
+  rc = sm_client_batch(c, q, 2, 2, -1, queued_cb, res, &nf, &e);
+  CHECK_MSG(rc == 0 && nf == 0, "queued batch: %d %s", rc, e.msg);
+  CHECK_MSG(res[0] == 2 && res[1] == 1, "attempts %d %d", res[0], res[1]);
+  uint8_t x[32] = {1};
+  rc = sm_client_prepare(c, x, 0, 0, 0, NULL, &e);
+  CHECK_MSG(rc == SM_CLIENT_ETIMEOUT && strstr(e.msg, "PING"), "dead server: %d %s", rc, e.msg);
+  CHECK(!sm_client_is_open(c));
+  sm_client_close(c);
+}
+
 /* ------------------------------------------------------------------ part 3: daemon */
 #if defined(SM_SERVER_BIN) && defined(SM_CLI_BIN)
 
@@ -864,6 +964,7 @@ int main(void) {
   int garbage = 0, silent = 1;
   run_pair("garbage", srv_garbage, cli_garbage, &garbage);
   run_pair("silent", srv_garbage, cli_garbage, &silent);
+  run_pair("queued", srv_queued, cli_queued, NULL);
   unlink(g_off);
   sm_mesh_destroy(g_mesh);
 

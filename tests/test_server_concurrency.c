@@ -627,6 +627,165 @@ static void run_threads(void *(*fn)(void *), tctx *t, int n, pthread_barrier_t *
   for (int i = 0; i < n; i++) pthread_join(th[i], NULL);
 }
 
+/* ------------------------------------------------------------------ fan-out helpers */
+
+/* A DISTANCE request body (payload without the frame header) into out (256 bytes);
+ * k1 = K and SINGLE_START when tuned, else the server defaults (what QUERY uses). */
+static uint32_t dist_body(uint8_t *out, const shape *a, const shape *b, int tuned) {
+  sm_proto_match_req q;
+  memset(&q, 0, sizeof q);
+  memcpy(q.x, a->id, 32);
+  memcpy(q.y, b->id, 32);
+  if (tuned) {
+    q.k1 = K;
+    q.flags = SM_MATCH_F_SINGLE_START;
+  }
+  sm_proto_header h = req_hdr(1);
+  uint8_t buf[512];
+  ptrdiff_t n = sm_proto_enc_match_req(buf, sizeof buf, &h, SM_OP_DISTANCE, &q);
+  REQUIRE(n > SM_PROTO_HEADER_LEN && n - SM_PROTO_HEADER_LEN <= 256);
+  memcpy(out, buf + SM_PROTO_HEADER_LEN, (size_t)n - SM_PROTO_HEADER_LEN);
+  return (uint32_t)(n - SM_PROTO_HEADER_LEN);
+}
+
+/* One DISTANCE request; its total, or -1. */
+static double dist_single(int fd, uint32_t rid, const shape *a, const shape *b, int tuned) {
+  sm_proto_match_req q;
+  memset(&q, 0, sizeof q);
+  memcpy(q.x, a->id, 32);
+  memcpy(q.y, b->id, 32);
+  if (tuned) {
+    q.k1 = K;
+    q.flags = SM_MATCH_F_SINGLE_START;
+  }
+  sm_proto_header h = req_hdr(rid);
+  uint8_t buf[512];
+  ptrdiff_t n = sm_proto_enc_match_req(buf, sizeof buf, &h, SM_OP_DISTANCE, &q);
+  REQUIRE(n > 0 && send_all(fd, buf, (size_t)n) == 0);
+  frame f;
+  REQUIRE(recv_frame(fd, &f) == 0);
+  double d = -1;
+  sm_proto_distance_resp r;
+  if (f.h.request_id == rid && f.h.status == 0 && !sm_proto_dec_distance_resp(f.body, f.body_len, &r))
+    d = r.dist.total;
+  else
+    print_error("DISTANCE", &f);
+  frame_free(&f);
+  return d;
+}
+
+/* Sends a BATCH of n DISTANCE items (pairs[i][0] -> pairs[i][1], tuned). */
+static void send_dist_batch(int fd, uint32_t rid, const shape *(*pairs)[2], uint32_t n) {
+  sm_proto_batch_item *it = calloc(n, sizeof *it);
+  uint8_t(*bodies)[256] = calloc(n, 256);
+  REQUIRE(it && bodies);
+  for (uint32_t i = 0; i < n; i++) {
+    it[i].opcode = SM_OP_DISTANCE;
+    it[i].len = dist_body(bodies[i], pairs[i][0], pairs[i][1], 1);
+    it[i].payload = bodies[i];
+  }
+  sm_proto_batch_req b = {it, NULL, 0, n};
+  sm_proto_header h = req_hdr(rid);
+  size_t cap = 64 + (size_t)n * 300;
+  uint8_t *buf = malloc(cap);
+  REQUIRE(buf);
+  ptrdiff_t len = sm_proto_enc_batch_req(buf, cap, &h, &b);
+  REQUIRE(len > 0 && send_all(fd, buf, (size_t)len) == 0);
+  free(buf);
+  free(it);
+  free(bodies);
+}
+
+/* Reads a BATCH's answers until its final frame. seen[i] counts item i's frames;
+ * dist[i] receives an OK item's total, status[i] its status. Frames for other request
+ * ids go to *other (CANCEL answers), counted. Returns 0 and the final frame's counts. */
+static int read_batch(int fd, uint32_t rid, uint32_t n, int *seen, double *dist, int *status,
+                      sm_proto_batch_done *done, int *other) {
+  for (;;) {
+    frame f;
+    if (recv_frame(fd, &f)) return -1;
+    if (f.h.request_id != rid) {
+      if (other) (*other)++;
+      frame_free(&f);
+      continue;
+    }
+    if (f.h.opcode != SM_OP_BATCH) {
+      frame_free(&f);
+      return -1;
+    }
+    if (!(f.h.flags & SM_PROTO_F_MORE)) {
+      int rc = f.h.status == 0 && !sm_proto_dec_batch_done(f.body, f.body_len, done) ? 0 : -1;
+      frame_free(&f);
+      return rc;
+    }
+    sm_proto_batch_item_resp ir;
+    if (sm_proto_dec_batch_item_resp(f.body, f.body_len, &ir) || ir.index >= n) {
+      frame_free(&f);
+      return -1;
+    }
+    seen[ir.index]++;
+    status[ir.index] = f.h.status;
+    sm_proto_distance_resp r;
+    if (f.h.status == 0 && ir.opcode == SM_OP_DISTANCE && !sm_proto_dec_distance_resp(ir.payload, ir.len, &r))
+      dist[ir.index] = r.dist.total;
+    frame_free(&f);
+  }
+}
+
+/* QUERY; returns the status; hits (ids + distances, at most 16) and n_considered. */
+static int query(int fd, uint32_t rid, const shape *q, int k, int mode, uint8_t ids[][32],
+                 double *d, uint32_t *n_hits, uint32_t *considered) {
+  sm_proto_query_req m;
+  memset(&m, 0, sizeof m);
+  memcpy(m.id, q->id, 32);
+  m.k = (uint16_t)k;
+  m.mode = (uint8_t)mode;
+  sm_proto_header h = req_hdr(rid);
+  uint8_t buf[256];
+  ptrdiff_t n = sm_proto_enc_query_req(buf, sizeof buf, &h, &m);
+  REQUIRE(n > 0 && send_all(fd, buf, (size_t)n) == 0);
+  frame f;
+  REQUIRE(recv_frame(fd, &f) == 0);
+  int st = f.h.request_id == rid ? f.h.status : -1;
+  sm_proto_query_resp r;
+  if (st == 0 && !sm_proto_dec_query_resp(f.body, f.body_len, &r) && r.count <= 16) {
+    *n_hits = r.count;
+    *considered = r.n_considered;
+    for (uint32_t i = 0; i < r.count; i++) {
+      sm_proto_hit hit;
+      sm_proto_hit_at(&r, i, &hit);
+      memcpy(ids[i], hit.id, 32);
+      d[i] = hit.distance;
+    }
+  } else if (st == 0) {
+    st = -1;
+  } else {
+    print_error("QUERY", &f);
+  }
+  frame_free(&f);
+  return st;
+}
+
+/* Writes a config file at g_dir/name. */
+static void write_conf(const char *name, const char *text, char *path, size_t cap) {
+  snprintf(path, cap, "%s/%s", g_dir, name);
+  FILE *f = fopen(path, "w");
+  REQUIRE(f);
+  fputs(text, f);
+  REQUIRE(fclose(f) == 0);
+}
+
+/* 1 if the daemon's log contains s. */
+static int log_has(const char *s) {
+  FILE *f = fopen(g_log, "r");
+  if (!f) return 0;
+  char line[2048];
+  int found = 0;
+  while (!found && fgets(line, sizeof line, f)) found = strstr(line, s) != NULL;
+  fclose(f);
+  return found;
+}
+
 /* ------------------------------------------------------------------ main */
 
 int main(void) {
@@ -863,6 +1022,180 @@ int main(void) {
     close(fd);
   }
   CHECK(stop_daemon() == 0);
+
+  /* ---------------- daemon G: --threads 2: BATCH items and QUERY candidates on the pool */
+  g_port = start_daemon("--threads 2");
+  REQUIRE(g_port > 0);
+  {
+    fd = open_client();
+    REQUIRE(fd >= 0);
+    shape extra[3];
+    double stx[3][3] = {{1.1, 1, 0.9}, {0.9, 1.1, 1.2}, {1.2, 1.2, 0.8}};
+    for (int i = 0; i < 3; i++) {
+      make_blob(&extra[i], 3, 20u + (unsigned)i, stx[i]);
+      CHECK(put(fd, &extra[i]) == SM_ST_OK);
+    }
+    const shape *pool[6] = {&g_x, &g_y, &g_z, &extra[0], &extra[1], &extra[2]};
+    enum { NB = 12 };
+    const shape *pairs[NB][2];
+    for (int i = 0; i < NB; i++) {
+      pairs[i][0] = pool[i % 6];
+      pairs[i][1] = pool[(i + 1 + i / 6) % 6];
+    }
+    /* references: the same pairs as single requests */
+    double ref[NB];
+    for (int i = 0; i < NB; i++) ref[i] = dist_single(fd, 10 + (uint32_t)i, pairs[i][0], pairs[i][1], 1);
+    for (int i = 0; i < NB; i++) CHECK(ref[i] >= 0);
+    CHECK(fabs(ref[0] - g_ref_d.total) <= 1e-12); /* x -> y */
+    uint64_t u0 = stat_of(fd, "fanout_units");
+    /* 1. every item answered exactly once, as the single requests */
+    send_dist_batch(fd, 100, pairs, NB);
+    int seen[NB] = {0}, st[NB];
+    double got[NB];
+    sm_proto_batch_done done = {0, 0};
+    CHECK(read_batch(fd, 100, NB, seen, got, st, &done, NULL) == 0);
+    for (int i = 0; i < NB; i++) {
+      CHECK_MSG(seen[i] == 1, "item %d answered %d times", i, seen[i]);
+      CHECK_MSG(seen[i] == 1 && st[i] == 0 && got[i] == ref[i], "item %d: status %d, %.17g vs %.17g",
+                i, st[i], got[i], ref[i]);
+    }
+    CHECK(done.n_items == NB && done.n_ok == NB);
+    uint64_t u1 = stat_of(fd, "fanout_units"), wmax = stat_of(fd, "fanout_workers_max");
+    fprintf(stderr, "batch of %d: fanout_units +%llu, fanout_workers_max %llu\n", NB,
+            (unsigned long long)(u1 - u0), (unsigned long long)wmax);
+    CHECK(u1 - u0 == NB);
+    CHECK(wmax == 2); /* both workers ran items of the one batch */
+    CHECK(stat_of(fd, "inflight") == 0);
+
+    /* 2. CANCEL of a running batch: every item still answered exactly once (OK or
+     * CANCELLED), then the final frame. */
+    enum { NC = 48 };
+    const shape *cp[NC][2];
+    for (int i = 0; i < NC; i++) {
+      cp[i][0] = pool[(i + 2) % 6];
+      cp[i][1] = pool[(i + 3 + i / 6) % 6];
+    }
+    send_dist_batch(fd, 200, cp, NC);
+    sm_proto_cancel_req cq = {200};
+    sm_proto_header ch = req_hdr(201);
+    uint8_t cbuf[64];
+    ptrdiff_t cn = sm_proto_enc_cancel_req(cbuf, sizeof cbuf, &ch, &cq);
+    REQUIRE(cn > 0 && send_all(fd, cbuf, (size_t)cn) == 0);
+    int cseen[NC] = {0}, cst[NC], other = 0, n_cancelled = 0, n_ok = 0, bad = 0;
+    double cd[NC];
+    CHECK(read_batch(fd, 200, NC, cseen, cd, cst, &done, &other) == 0);
+    for (int i = 0; i < NC; i++) {
+      CHECK_MSG(cseen[i] == 1, "cancelled batch: item %d answered %d times", i, cseen[i]);
+      if (cst[i] == SM_ST_CANCELLED) n_cancelled++;
+      else if (cst[i] == 0) n_ok++;
+      else bad++;
+    }
+    fprintf(stderr, "cancelled batch of %d: %d OK, %d CANCELLED\n", NC, n_ok, n_cancelled);
+    CHECK(bad == 0);
+    CHECK(n_cancelled >= 1);
+    CHECK(done.n_items == NC && done.n_ok == (uint32_t)n_ok);
+    if (other == 0) { /* the CANCEL answer came after the final frame */
+      frame f;
+      REQUIRE(recv_frame(fd, &f) == 0);
+      CHECK(f.h.request_id == 201 && f.h.opcode == SM_OP_CANCEL && f.h.status == 0);
+      frame_free(&f);
+    }
+    CHECK(stat_of(fd, "inflight") == 0);
+    req p = {R_PING, NULL, NULL, 9, 0};
+    CHECK(call(fd, 300, &p, 1) == 0);
+
+    /* 3. QUERY: FULL = a DISTANCE against every other stored shape (server defaults);
+     * DEFAULT with 5 candidates (< the shortlist of 16) = the same ranking; SPECTRAL
+     * considers the same 5. Units = candidates per phase. */
+    const shape *others[5] = {&g_y, &g_z, &extra[0], &extra[1], &extra[2]};
+    double full_ref[5];
+    for (int i = 0; i < 5; i++) full_ref[i] = dist_single(fd, 400 + (uint32_t)i, &g_x, others[i], 0);
+    uint8_t ids[16][32];
+    double hd[16];
+    uint32_t nh = 0, nc = 0;
+    uint64_t q0 = stat_of(fd, "fanout_units");
+    CHECK(query(fd, 500, &g_x, 5, SM_QUERY_FULL, ids, hd, &nh, &nc) == 0);
+    uint64_t q1 = stat_of(fd, "fanout_units");
+    CHECK(nh == 5 && nc == 5);
+    CHECK(q1 - q0 == 5);
+    for (uint32_t h = 0; h < nh; h++) {
+      int found = 0;
+      for (int i = 0; i < 5; i++)
+        if (!memcmp(ids[h], others[i]->id, 32)) {
+          found = 1;
+          CHECK_MSG(hd[h] == full_ref[i], "QUERY FULL hit %u: %.17g vs DISTANCE %.17g", h, hd[h], full_ref[i]);
+        }
+      CHECK(found);
+      if (h) CHECK(hd[h - 1] <= hd[h]);
+    }
+    uint8_t ids2[16][32];
+    double hd2[16];
+    uint32_t nh2 = 0, nc2 = 0;
+    CHECK(query(fd, 501, &g_x, 3, SM_QUERY_DEFAULT, ids2, hd2, &nh2, &nc2) == 0);
+    CHECK(nh2 == 3 && nc2 == 5);
+    CHECK(stat_of(fd, "fanout_units") - q1 == 10); /* 5 spectral + 5 full */
+    for (uint32_t h = 0; h < nh2 && h < nh; h++)
+      CHECK(!memcmp(ids2[h], ids[h], 32) && hd2[h] == hd[h]);
+    CHECK(query(fd, 502, &g_x, 16, SM_QUERY_SPECTRAL, ids2, hd2, &nh2, &nc2) == 0);
+    CHECK(nh2 == 5 && nc2 == 5);
+    for (uint32_t h = 1; h < nh2; h++) CHECK(hd2[h - 1] <= hd2[h]);
+    close(fd);
+    for (int i = 0; i < 3; i++) {
+      free(extra[i].drc);
+      sm_mesh_destroy(extra[i].mesh);
+    }
+  }
+  CHECK(stop_daemon() == 0);
+
+  /* ---------------- daemon H: --config FILE (command-line flags override it) */
+  {
+    char conf[700];
+    write_conf("good.conf",
+               "# shapematchd test configuration\n"
+               "threads = 1\n"
+               "\n"
+               "max-inflight = 3   # per connection\n"
+               "max-batch-items=5\n"
+               "token = c0nf#ig\n",
+               conf, sizeof conf);
+    char extra[800];
+    snprintf(extra, sizeof extra, "--config %s --max-batch-items 9", conf);
+    g_port = start_daemon(extra);
+    REQUIRE(g_port > 0);
+    int c = connect_to(g_port);
+    REQUIRE(c >= 0);
+    CHECK(hello_tok(c, "wrong", NULL) == SM_ST_UNAUTHORIZED);
+    close(c);
+    c = connect_to(g_port);
+    REQUIRE(c >= 0);
+    sm_proto_hello_resp hr;
+    CHECK(hello_tok(c, "c0nf#ig", &hr) == 0); /* '#' inside a value is not a comment */
+    CHECK(hr.max_inflight == 3);
+    CHECK(hr.max_batch_items == 9); /* the flag wins over the file's 5 */
+    req d = {R_DIST, &g_x, &g_y, 0, 0};
+    CHECK(call(c, 1, &d, 1) == 0);
+    close(c);
+    CHECK(stop_daemon() == 0);
+    CHECK(log_has("threads=1"));
+
+    /* errors name the file and line; the daemon exits (status 2) without listening */
+    write_conf("bad_key.conf", "threads = 1\n# fine\nthreadz = 2\n", conf, sizeof conf);
+    snprintf(extra, sizeof extra, "--config %s", conf);
+    CHECK(start_daemon(extra) == -1);
+    char want[800];
+    snprintf(want, sizeof want, "%s:3: unknown key 'threadz'", conf);
+    CHECK_MSG(log_has(want), "log lacks: %s", want);
+    write_conf("bad_val.conf", "max-inflight = lots\n", conf, sizeof conf);
+    snprintf(extra, sizeof extra, "--config %s", conf);
+    CHECK(start_daemon(extra) == -1);
+    snprintf(want, sizeof want, "%s:1: max-inflight: bad value 'lots'", conf);
+    CHECK_MSG(log_has(want), "log lacks: %s", want);
+    write_conf("bad_line.conf", "port 7878\n", conf, sizeof conf);
+    snprintf(extra, sizeof extra, "--config %s", conf);
+    CHECK(start_daemon(extra) == -1);
+    snprintf(want, sizeof want, "%s:1: expected 'key = value'", conf);
+    CHECK_MSG(log_has(want), "log lacks: %s", want);
+  }
 
   kill_daemon();
   if (!sm_test_failures) rm_rf(g_dir);
