@@ -1,0 +1,240 @@
+"""docs/RESULTS.md from the evaluation suite's JSON files (docs/eval/*.json).
+
+Everything in the report is read from the JSON the experiments wrote; nothing is typed in
+by hand. Sections whose JSON is missing say so.
+"""
+import json
+import os
+import platform
+import time
+
+CONFIGS = ["nn+lb", "nn+elastic", "sinkhorn+lb", "sinkhorn+elastic", "sinkhorn+hybrid"]
+DEFAULT = "sinkhorn+elastic"
+PAIR_TITLES = {"homer": "homer A -> B", "head": "head A -> B", "lion": "lion -> cat",
+               "man": "SMPL man -> permuted woman"}
+
+
+def load(out, name):
+    path = os.path.join(out, name)
+    if not os.path.exists(path):
+        return None
+    with open(path) as f:
+        return json.load(f)
+
+
+def fmt(v, nd=4):
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return f"{v:.{nd}f}"
+    return str(v)
+
+
+def table(head, rows):
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lines += ["| " + " | ".join(fmt(c) if not isinstance(c, str) else c for c in r) + " |"
+              for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def bold_default(cfg):
+    return f"**{cfg}**" if cfg == DEFAULT else cfg
+
+
+def section_ablation(out, md):
+    ab = load(out, "ablation.json")
+    md.append("## 1. Ablation and basis-size sweep\n")
+    if not ab:
+        md.append("_Not run yet (`bench/eval/run.sh ablation`)._\n")
+        return
+    md.append(f"Command: `bench/eval/run.sh ablation` ({ab['wall_s']:.0f} s). Mean geodesic "
+              "error (/ sqrt(area), Dijkstra on the target's edge graph) for each "
+              "configuration and refinement size k; every metric against k is plotted below. "
+              "nn rows have no Sinkhorn anywhere; sinkhorn rows use the default two soft "
+              "refinement steps. Bases k = max k, cached; descriptors from 100 LB "
+              "functions.\n")
+    ks = ab["ks"]
+    for pair, res in ab["pairs"].items():
+        md.append(f"**{PAIR_TITLES[pair]}** ({res['n_source']} -> {res['n_target']} vertices)\n")
+        rows = []
+        for cfg in CONFIGS:
+            by_k = {r["k"]: r for r in res["runs"] if r["config"] == cfg}
+            rows.append([bold_default(cfg)] + [by_k[k]["geo_mean"] if k in by_k and by_k[k]["ok"]
+                                               else "fail" for k in ks])
+        md.append(table(["config"] + [f"k={k}" for k in ks], rows))
+    md.append("\n")
+    for key, title in (("geo_mean", "mean geodesic error"), ("auc", "area under the accuracy curve"),
+                       ("bijectivity_error", "bijectivity error"), ("coverage", "coverage"),
+                       ("chamfer", "Chamfer distance"), ("dirichlet", "Dirichlet energy"),
+                       ("t_total", "runtime")):
+        md.append(f"![{title} against k](eval/ablation_{key}.png)\n")
+
+
+def section_curves(out, md):
+    cu = load(out, "curves.json")
+    md.append("## 2. Accuracy curves (k = 100)\n")
+    if not cu:
+        md.append("_Not run yet (`bench/eval/run.sh curves`)._\n")
+        return
+    md.append(f"Command: `bench/eval/run.sh curves` ({cu['wall_s']:.0f} s). Fraction of "
+              "ground-truth correspondences under a normalized geodesic error threshold from "
+              "0 to 0.1; AUC = area / 0.1. Bijectivity error = mean geodesic distance on the "
+              "source between i and T_yx(T_xy(i)) / sqrt(area); coverage = area fraction of "
+              "the target hit; runtime = sm_match wall time with cached bases (one thread).\n")
+    head = ["pair", "config", "geo mean", "AUC", "<= 0.05", "bijectivity", "coverage",
+            "Chamfer", "Dirichlet (GT)", "time s"]
+    rows = []
+    for pair, res in cu["pairs"].items():
+        for r in res["runs"]:
+            if not r["ok"]:
+                rows.append([pair, r["config"], "failed: " + r.get("error", "")] + [""] * 7)
+                continue
+            rows.append([PAIR_TITLES[pair], bold_default(r["config"]), r["geo_mean"], r["auc"],
+                         r["frac_le_005"], r["bijectivity_error"], r["coverage"], r["chamfer"],
+                         f"{r['dirichlet']:.2f} ({r['dirichlet_gt']:.2f})"
+                         if r.get("dirichlet_gt") is not None else f"{r['dirichlet']:.2f}",
+                         f"{r['t_total']:.2f}"])
+    md.append(table(head, rows))
+    md.append("\n![accuracy curves](eval/curves.png)\n")
+
+
+def cls_row(cfg, r, key):
+    s = r[key]
+    return [bold_default(cfg), s["loo"]["accuracy"], s["split_80_20"]["accuracy"],
+            s["split_80_20"]["precision"], s["split_80_20"]["recall"], s["split_80_20"]["f1"],
+            s["split_80_20"]["specificity"], s["split_70_30"]["accuracy"],
+            s["split_70_30"]["precision"], s["split_70_30"]["recall"], s["split_70_30"]["f1"],
+            s["split_70_30"]["specificity"]]
+
+
+def confusion(s):
+    cls = s["classes"]
+    rows = [[cls[i]] + [str(v) for v in row] for i, row in enumerate(s["confusion"])]
+    return table(["true \\ predicted"] + cls, rows)
+
+
+def section_classify(out, md):
+    cl = load(out, "classify.json")
+    md.append("## 3. Shape distance and classification (tosca_classification_5k)\n")
+    if not cl:
+        md.append("_Not run yet (`bench/eval/run.sh classify`)._\n")
+        return
+    n = len(cl["shapes"])
+    t = cl["timing"]
+    md.append(f"Command: `bench/eval/run.sh classify` ({t['total_s']:.0f} s: store + bases "
+              f"{t['put_prepare_s']:.0f} s, then the distance matrices). {n} shapes, "
+              f"{n * (n - 1) // 2} distances per configuration, computed **through the daemon** "
+              "with `shapematch batch` (the distance is symmetric, so each unordered pair once). "
+              f"Distance preset: refinement up to k = {cl['k']}, {cl['sinkhorn_steps']} soft "
+              "Sinkhorn step(s) for sinkhorn rows; the cosine distance of core/sm_distance.h. "
+              "ShapeDNA: cosine distance of the first 30 non-zero LB eigenvalues at unit area. "
+              "1-NN classification: leave-one-out, and stratified 80/20 and 70/30 splits "
+              f"(means over seeds 0..19); macro precision / recall / F1 / specificity.\n")
+    head = ["config", "LOO acc", "80/20 acc", "P", "R", "F1", "spec", "70/30 acc", "P", "R",
+            "F1", "spec"]
+    ncls = len(set(cl["labels"]))
+    for key, title in (("classes_8", f"{ncls} classes"), ("classes_6", "humans merged")):
+        md.append(f"**{title}**\n")
+        md.append(table(head, [cls_row(c, r, key) for c, r in cl["configs"].items()]))
+        md.append("\n")
+    md.append("**Distances within and across classes (8 classes)**\n")
+    rows = []
+    for c, r in cl["configs"].items():
+        d = r["distances_8"]
+        rows.append([bold_default(c), d["intra_mean"], d["intra_max"], d["inter_mean"],
+                     d["inter_min"], f"{d['ratio_inter_over_intra']:.2f}",
+                     f"{r['wall_s']:.0f}" if "per_distance_s" in r else "-",
+                     f"{r['per_distance_s']:.3f}" if "per_distance_s" in r else "-"])
+    md.append(table(["config", "intra mean", "intra max", "inter mean", "inter min",
+                     "inter/intra", "matrix s", "s / distance"], rows))
+    if DEFAULT in cl["configs"]:
+        md.append(f"\nConfusion matrix, {DEFAULT}, leave-one-out, 8 classes:\n\n")
+        md.append(confusion(cl["configs"][DEFAULT]["classes_8"]["loo"]))
+    md.append("\n![distance matrices ordered by class](eval/classify_heatmaps.png)\n")
+
+
+def section_visual(out, md):
+    vi = load(out, "visual.json")
+    md.append("## 4. Visual check\n")
+    if not vi:
+        md.append("_Not run yet (`bench/eval/run.sh visual`)._\n")
+        return
+    md.append("Command: `bench/eval/run.sh visual`. A smooth colour field on the source (its "
+              "coordinates in its principal frame as RGB) is pulled back to the target through "
+              "the map Y -> X; PLY files with vertex colours are in `docs/eval/visual/`, the "
+              "renderings (matplotlib, headless) below. The target is drawn after a similarity "
+              "fit to the source through the map, so both are seen from the same side.\n")
+    for p in vi["pairs"]:
+        md.append(f"![{p['pair']}](eval/{p['png']})\n")
+
+
+def section_robust(out, md):
+    ro = load(out, "robust.json")
+    md.append("## 5. Robustness to non-isometric deformation\n")
+    if not ro:
+        md.append("_Not run yet (`bench/eval/run.sh robust`)._\n")
+        return
+    t = ro["timing"]
+    md.append(f"Command: `bench/eval/run.sh robust` ({t['total_s']:.0f} s). Queries: the first "
+              f"shape of each class ({', '.join(ro['queries'])}), deformed by the suite "
+              "(eval_tool: stretch along the principal axis; bulge / dent of a region of "
+              "radius 0.15 sqrt(area) by 0.3 of the radius along the normals; quadric "
+              "decimation to a fraction of the vertices; noise along the normals in mean edge "
+              "lengths). Each deformed query is classified by its nearest neighbour among the "
+              "other 39 undeformed shapes (its own original excluded). Entries: correct / "
+              "queries.\n")
+    cfgs = list(ro["configs"])
+    rows = []
+    for kind, s in ro["deformations"]:
+        key = f"{kind} {s}"
+        rows.append([key] + [f"{ro['configs'][c]['correct'][key]}/{ro['configs'][c]['n_queries'][key]}"
+                             for c in cfgs])
+    md.append(table(["deformation"] + [bold_default(c) for c in cfgs], rows))
+    md.append("\n![accuracy against deformation strength](eval/robust.png)\n")
+
+
+def section_targets(out, md):
+    cl, ro = load(out, "classify.json"), load(out, "robust.json")
+    md.append("## Targets\n")
+    lines = []
+    if cl and DEFAULT in cl["configs"]:
+        acc = cl["configs"][DEFAULT]["classes_8"]["loo"]["accuracy"]
+        lines.append(f"- Leave-one-out 1-NN accuracy, 8 classes, {DEFAULT}: {acc:.3f} "
+                     f"(target 1.0: {'met' if acc >= 1.0 else 'NOT met'}); ShapeDNA "
+                     f"{cl['configs']['shapedna']['classes_8']['loo']['accuracy']:.3f}.")
+        others = {c: r["classes_8"] for c, r in cl["configs"].items() if c != DEFAULT}
+        d = cl["configs"][DEFAULT]["classes_8"]
+        worse = [c for c, s in others.items()
+                 if any(s[k]["accuracy"] > d[k]["accuracy"] + 1e-12 or s[k]["f1"] > d[k]["f1"] + 1e-12
+                        for k in ("loo", "split_80_20", "split_70_30"))]
+        lines.append(f"- {DEFAULT} >= every other configuration on accuracy and F1 (LOO, 80/20, "
+                     f"70/30, 8 classes): {'met' if not worse else 'NOT met, beaten by ' + ', '.join(worse)}.")
+    if ro and DEFAULT in ro["configs"] and "stretch 1.4" in ro["configs"][DEFAULT]["accuracy"]:
+        a = ro["configs"][DEFAULT]["accuracy"]["stretch 1.4"]
+        b = ro["configs"]["shapedna"]["accuracy"]["stretch 1.4"]
+        lines.append(f"- Under a 1.4x stretch: {DEFAULT} {a:.3f} (target >= 0.95: "
+                     f"{'met' if a >= 0.95 else 'NOT met'}), ShapeDNA {b:.3f}.")
+    tm = load(out, "timing.json") or {}
+    if tm:
+        total = sum(v["wall_s"] for v in tm.values())
+        parts = ", ".join(f"{k} {v['wall_s']:.0f} s" for k, v in tm.items())
+        quick = any(v.get("quick") for v in tm.values())
+        lines.append(f"- Suite run time: {total:.0f} s in all ({parts}){' [quick run]' if quick else ''}; "
+                     f"target <= 1200 s: {'met' if total <= 1200 else 'NOT met'}.")
+    md.append("\n".join(lines) + "\n" if lines else "_No results yet._\n")
+
+
+def write(out, path):
+    md = ["# shapematch: evaluation results\n",
+          "Generated by `bench/eval/run.sh report` from `docs/eval/*.json` (written by the "
+          "experiments; rerun one with `bench/eval/run.sh EXPERIMENT`, all with "
+          f"`bench/eval/run.sh all`). Last generated {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} "
+          f"on {platform.machine()} with {os.cpu_count()} cores. Data: `../shared/data` "
+          "(third-party meshes, see its README).\n"]
+    section_targets(out, md)
+    for sec in (section_ablation, section_curves, section_classify, section_visual,
+                section_robust):
+        sec(out, md)
+    with open(path + ".tmp", "w") as f:
+        f.write("\n".join(md))
+    os.replace(path + ".tmp", path)
