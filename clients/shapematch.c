@@ -696,7 +696,8 @@ static int upload_put_cb(void *ud, size_t i, const sm_client_req *req, const sm_
  * PREPARE for a stored id) for those that need it. A request waiting in the server's queue
  * is waited for as long as the server answers (sm_client.h); BUSY answers are retried.
  * settled(ud, ref) runs as each ref gets its state (1 ready, -1 failed, message in
- * ref->err). Returns 0, or 1 when the connection was lost (unsettled refs then fail). */
+ * ref->err). Returns 0, or 1 when the connection was lost or the user stopped it
+ * (unsettled refs then fail). */
 static int upload_refs(sm_client *c, shape_ref **refs, size_t n, int prepare, unsigned inflight,
                        void (*settled)(void *, shape_ref *), void *ud) {
   sm_client_req *reqs = calloc(n ? n : 1, sizeof *reqs);
@@ -725,8 +726,8 @@ static int upload_refs(sm_client *c, shape_ref **refs, size_t n, int prepare, un
     }
     if (!nr) break;
     if (sm_client_batch(c, reqs, nr, inflight, -1, phase ? upload_put_cb : upload_has_cb, &u,
-                        NULL, &e) && !sm_client_is_open(c))
-      rc = 1;
+                        NULL, &e))
+      rc = 1; /* connection lost or stopped (Ctrl-C): unsent refs fail below */
   }
   for (size_t k = 0; k < n; k++) /* not sent: the connection was lost or out of memory */
     if (!refs[k]->state) {
@@ -802,7 +803,7 @@ static int cmd_put(int argc, char **argv, const char *addr) {
     for (size_t k = 0; k < n; k++) ref_free(&refs[k]);
     if (lost) {
       for (size_t k = at + n; k < files.n; k++)
-        fprintf(stderr, "shapematch: %s: not uploaded (connection lost)\n", files.v[k]);
+        fprintf(stderr, "shapematch: %s: not uploaded\n", files.v[k]);
       rc = 1;
       break;
     }

@@ -912,6 +912,50 @@ static void test_daemon(void) {
   CHECK_MSG(ok == 2 && bad == 1, "batch: %d ok, %d failed: %s", ok, bad, bj ? bj : "");
   free(bj);
 
+  /* a busy server: a batch of 42 distances (8 in flight) and a `put --prepare` of 6 new
+   * shapes at the same time, both with --io-timeout 0.2: their requests wait in the
+   * daemon's queue far longer than 0.2 s, which must not be taken for a dead connection
+   * (the client probes with PING and goes on waiting). Every item succeeds; put prints
+   * its lines in argument order. */
+  snprintf(cmd, sizeof cmd, "cd %s && for i in 0 1 2 3 4 5; do %s synth blob --subdiv 3 --seed $((20 + i)) "
+           "--stretch 1.$i,1,0.9 -o c$i.off 2>/dev/null || exit 1; done && : > pairs2.txt && "
+           "for i in 0 1 2 3 4 5; do for j in 0 1 2 3 4 5 a b; do [ $i = $j ] || echo \"c$i.off $j\" >> pairs2.txt; done; done && "
+           "sed -i 's/ a$/ a.drc/; s/ b$/ b.off/; s/ \\([0-5]\\)$/ c\\1.off/' pairs2.txt", dir, cli);
+  REQUIRE(run(cmd) == 0);
+  snprintf(cmd, sizeof cmd, "cd %s && (%s batch pairs2.txt --server %s --inflight 8 --io-timeout 0.2 > busy.json 2> busy.err; "
+           "echo $? > busy.rc) & (cd %s && %s put c0.off c1.off c2.off c3.off c4.off c5.off --prepare --inflight 4 "
+           "--server %s --io-timeout 0.2 > put2.txt 2> put2.err; echo $? > put2.rc) & wait",
+           dir, cli, srv, dir, cli, srv);
+  run(cmd);
+  {
+    char pr[700];
+    snprintf(pr, sizeof pr, "%s/busy.rc", dir);
+    char *brc = slurp(pr, NULL);
+    snprintf(pr, sizeof pr, "%s/put2.rc", dir);
+    char *prc = slurp(pr, NULL);
+    CHECK_MSG(brc && atoi(brc) == 0, "busy batch exit %s (see %s/busy.err)", brc ? brc : "?", dir);
+    CHECK_MSG(prc && atoi(prc) == 0, "busy put exit %s (see %s/put2.err)", prc ? prc : "?", dir);
+    free(brc);
+    free(prc);
+    snprintf(pr, sizeof pr, "%s/busy.json", dir);
+    char *bj2 = slurp(pr, NULL);
+    int ok2 = 0, bad2 = 0;
+    for (const char *q = bj2; q && (q = strstr(q, "\"ok\":")); q += 5) *(q[5] == 't' ? &ok2 : &bad2) += 1;
+    CHECK_MSG(ok2 == 42 && bad2 == 0, "busy batch: %d ok, %d failed", ok2, bad2);
+    free(bj2);
+    snprintf(pr, sizeof pr, "%s/put2.txt", dir);
+    char *pt = slurp(pr, NULL);
+    const char *at = pt;
+    for (int i = 0; i < 6 && at; i++) {
+      char name[16];
+      snprintf(name, sizeof name, "  c%d.off\n", i);
+      at = strstr(at, name);
+      CHECK_MSG(at != NULL, "put2: c%d.off missing or out of order: %s", i, pt ? pt : "");
+      if (at) at += strlen(name);
+    }
+    free(pt);
+  }
+
   snprintf(cmd, sizeof cmd, "%s stats --server %s > %s/stats.txt 2>&1", cli, srv, dir);
   CHECK(run(cmd) == 0);
   snprintf(cmd, sizeof cmd, "%s query %s/a.drc -k 3 --server %s > %s/query.txt 2>&1", cli, dir, srv, dir);
