@@ -1,15 +1,26 @@
 /* sm_knn: exact K nearest neighbours by FLANN kd-tree or blocked dgemm brute force.
  *
  * DESIGN
- *   Brute force: with Y centered on its mean (less cancellation), one dgemm of a block of
+ *   Brute force: with Y centered on its mean (less cancellation) and scaled by a power of
+ *   two s (exact) so that max_j |s (y_j - center)| is in [1/2, 1), one GEMM of a block of
  *   query rows [x_i, 1] by a block of rows [-2 y_j, |y_j|^2] gives v_ij = |y_j|^2 - 2 x_i.y_j,
- *   the squared distance minus the row constant |x_i|^2, so the scan only compares. Each row keeps its K+1 smallest v.
- *   Rounding: |computed - exact| <= delta_i = 4 (d + 4) u (|x_i|^2 + max_j |y_j|^2)
- *   (a generous form of the gamma_d bound for dot products, u = 2^-53). If the K-th and
- *   (K+1)-th candidates are more than 2 delta_i apart, the K smallest candidates are the
- *   exact K nearest (every point left out is farther); their distances are then recomputed
- *   directly and sorted by (distance, index). Otherwise (ties, duplicates, near-ties) the
- *   row is redone by a direct scan, which keeps the lowest index among equals.
+ *   the squared distance minus the row constant |x_i|^2, so the scan only compares.
+ *   Screening in single precision, certification in double. The GEMM runs in float32
+ *   (sgemm: twice the flops per cycle of dgemm and half the memory traffic; it was 60% of
+ *   a match). Each row keeps its K + SCREEN_EXTRA smallest v. Rounding: |computed - exact|
+ *   <= delta_i = 4 (d + 4) u (|x_i|^2 + max_j |y_j|^2) with u = 2^-24 (the gamma_{d+1}
+ *   bound of a dot product plus the rounding of the inputs to float, with a factor 2 to
+ *   spare; the scaling keeps everything far from float overflow and underflow). If the
+ *   K-th and the last kept candidate are more than 2 delta_i apart, every point left out
+ *   is strictly farther than the K-th nearest, so the K nearest (and all points tied with
+ *   the K-th) are among the kept ones: their distances are recomputed directly in double
+ *   and sorted by (distance, index), the same answer as a double-precision scan. Otherwise
+ *   (ties, duplicates, near-ties; about 1 row in 300 on ZoomOut and Sinkhorn embeddings)
+ *   the row is screened again against all of Y (sgemv) and every point whose value is
+ *   within lv_K + 2 delta_i is kept: a superset of the points within the K-th nearest
+ *   distance, whose distances are then computed directly. Rows with more than RESCREEN_MAX
+ *   such points, or too far from Y to screen in float, get a direct scan of all of Y;
+ *   both keep the lowest index among equals.
  *   kd-tree: FLANN's exact single tree; distances are recomputed the same direct way so
  *   that both strategies agree bit for bit.
  *
@@ -39,23 +50,31 @@
 
 #include <cblas.h>
 #include <flann/flann.h>
+#if defined(__SSE2__)
+#include <emmintrin.h>
+#endif
 #include <math.h>
 #include <pthread.h>
 #include <stdlib.h>
 #include <string.h>
 
-/* Query rows x Y rows per dgemm block (G = 2 MiB): the best of 128/256 x 512/1024/2048
- * on 2000 x 5000 points, d = 20 and 60. */
+/* Query rows x Y rows per GEMM block (G = 1 MiB of floats): the best of 128/256 x
+ * 512/1024/2048 on 2000 x 5000 points, d = 20 and 60 (measured with doubles). */
 enum { BLK_X = 256, BLK_Y = 1024 };
+
+/* Candidates kept beyond K per row: the margin that certifies the float screening. A row
+ * that fails it is rescreened; beyond RESCREEN_MAX candidates it is scanned directly. */
+enum { SCREEN_EXTRA = 4, RESCREEN_MAX = 1024 };
 
 struct sm_knn {
   int strategy;
   int32_t ny;
   int d;
   double *Y;       /* caller's points, copied (exact distances are taken on these) */
-  double *Ya;      /* brute: rows [-2 (y_j - center), |y_j - center|^2], d + 1 wide */
+  float *Ya;       /* brute: rows [-2 yc_j, |yc_j|^2], yc_j = s (y_j - center), d + 1 wide */
   double *center;  /* brute: mean of Y */
-  double ymax2;    /* brute: max_j |Yc_j|^2 */
+  double scale;    /* brute: s, a power of two */
+  double ymax2;    /* brute: max_j |yc_j|^2, in [1/4, 1) (or 0) */
   flann_index_t flann;
   struct FLANNParameters fp;
 };
@@ -87,25 +106,44 @@ static int check_finite(const double *a, int64_t n, const char *what, sm_error *
   return 0;
 }
 
+/* The power of two s with s * sqrt(r2) in [1/2, 1) (1 when r2 is 0 or not finite). */
+static double unit_scale(double r2) {
+  if (!(r2 > 0) || !isfinite(r2)) return 1;
+  int e;
+  frexp(sqrt(r2), &e);
+  return ldexp(1.0, -e);
+}
+
 static int build_brute(sm_knn *ix, sm_error *err) {
   int32_t ny = ix->ny;
   int d = ix->d;
-  ix->Ya = malloc((size_t)ny * (d + 1) * sizeof(double));
+  ix->Ya = malloc((size_t)ny * (d + 1) * sizeof(float));
   ix->center = calloc((size_t)d, sizeof(double));
   if (!ix->Ya || !ix->center)
     return sm_error_set(err, SM_ENOMEM, "knn: brute-force index of %d x %d", ny, d);
   for (int32_t j = 0; j < ny; j++)
     for (int t = 0; t < d; t++) ix->center[t] += ix->Y[(size_t)j * d + t];
   for (int t = 0; t < d; t++) ix->center[t] /= ny;
-  ix->ymax2 = 0;
+  double r2 = 0;
   for (int32_t j = 0; j < ny; j++) {
-    double s = 0, *ya = ix->Ya + (size_t)j * (d + 1);
+    double s = 0;
     for (int t = 0; t < d; t++) {
       double c = ix->Y[(size_t)j * d + t] - ix->center[t];
-      ya[t] = -2 * c;
       s += c * c;
     }
-    ya[d] = s;
+    if (s > r2) r2 = s;
+  }
+  ix->scale = unit_scale(r2);
+  ix->ymax2 = 0;
+  for (int32_t j = 0; j < ny; j++) {
+    double s = 0;
+    float *ya = ix->Ya + (size_t)j * (d + 1);
+    for (int t = 0; t < d; t++) {
+      double c = ix->scale * (ix->Y[(size_t)j * d + t] - ix->center[t]);
+      ya[t] = (float)(-2 * c);
+      s += c * c;
+    }
+    ya[d] = (float)s;
     if (s > ix->ymax2) ix->ymax2 = s;
   }
   return 0;
@@ -199,6 +237,18 @@ static void list_insert(double *lv, int32_t *li, int *cnt, int cap, double v, in
   li[p] = j;
 }
 
+/* The same for the float screening lists. */
+static void list_insert_f(float *lv, int32_t *li, int *cnt, int cap, float v, int32_t j) {
+  int p = *cnt < cap ? (*cnt)++ : cap - 1;
+  while (p > 0 && lv[p - 1] > v) {
+    lv[p] = lv[p - 1];
+    li[p] = li[p - 1];
+    p--;
+  }
+  lv[p] = v;
+  li[p] = j;
+}
+
 /* Sorts K (dist, idx) pairs by distance then index (K is small: insertion sort). */
 static void sort_pairs(double *dv, int32_t *iv, int K) {
   for (int a = 1; a < K; a++) {
@@ -227,110 +277,185 @@ static void exact_row(const sm_knn *ix, const double *x, int K, double *dv, int3
 /* ---- brute force -------------------------------------------------------------------- */
 
 typedef struct brute_ws {
-  double *Xc, *xn, *G, *lv;
-  int32_t *li;
+  float *Xc, *G, *lv;
+  double *xn, *dv;
+  int32_t *li, *iv;
   int *cnt;
+  float *row; /* ny: one query's screening values, for rows the list did not certify */
 } brute_ws;
 
 static void brute_ws_free(brute_ws *w) {
   free(w->Xc);
-  free(w->xn);
   free(w->G);
   free(w->lv);
+  free(w->xn);
+  free(w->dv);
   free(w->li);
+  free(w->iv);
   free(w->cnt);
+  free(w->row);
 }
 
-static int brute_ws_alloc(brute_ws *w, int d, int cap) {
+static int brute_ws_alloc(brute_ws *w, int d, int32_t ny, int cap) {
   memset(w, 0, sizeof *w);
-  w->Xc = malloc((size_t)BLK_X * (d + 1) * sizeof(double));
+  w->row = malloc((size_t)ny * sizeof(float));
+  w->Xc = malloc((size_t)BLK_X * (d + 1) * sizeof(float));
+  w->G = malloc((size_t)BLK_X * BLK_Y * sizeof(float));
+  w->lv = malloc((size_t)BLK_X * cap * sizeof(float));
   w->xn = malloc(BLK_X * sizeof(double));
-  w->G = malloc((size_t)BLK_X * BLK_Y * sizeof(double));
-  w->lv = malloc((size_t)BLK_X * cap * sizeof(double));
+  int nbuf = cap > RESCREEN_MAX ? cap : RESCREEN_MAX;
+  w->dv = malloc((size_t)nbuf * sizeof(double));
   w->li = malloc((size_t)BLK_X * cap * sizeof(int32_t));
+  w->iv = malloc((size_t)nbuf * sizeof(int32_t));
   w->cnt = malloc(BLK_X * sizeof(int));
-  return w->Xc && w->xn && w->G && w->lv && w->li && w->cnt ? 0 : -1;
+  return w->Xc && w->G && w->lv && w->xn && w->dv && w->li && w->iv && w->cnt && w->row
+             ? 0
+             : -1;
 }
 
-/* Not fmin: its NaN rules cost a call; there are no NaNs here (inputs are checked). */
+/* Not fminf: its NaN rules cost a call; there are no NaNs here (inputs are checked). */
 #define MIN2(a, b) ((a) < (b) ? (a) : (b))
 
-/* Scans one dgemm block: rows [0, bx) against Y rows [j0, j0 + by). Most entries are
- * above the row's threshold: test the minimum of 8 at a time (vectorizable), and only walk
- * a group that holds a candidate. */
+/* Scans one GEMM block: rows [0, bx) against Y rows [j0, j0 + by). Most entries are
+ * above the row's threshold: test the minimum of 16 (SSE) or 8 at a time, and only walk a
+ * group that holds a candidate. */
 static void brute_scan(brute_ws *w, int bx, int32_t j0, int by, int cap) {
   for (int r = 0; r < bx; r++) {
-    const double *g = w->G + (size_t)r * by;
-    double *lv = w->lv + (size_t)r * cap;
+    const float *g = w->G + (size_t)r * by;
+    float *lv = w->lv + (size_t)r * cap;
     int32_t *li = w->li + (size_t)r * cap;
     int cnt = w->cnt[r];
-    double thr = cnt < cap ? INFINITY : lv[cap - 1];
+    float thr = cnt < cap ? INFINITY : lv[cap - 1];
     int j = 0;
+#if defined(__SSE2__)
+    __m128 vt = _mm_set1_ps(thr);
+    for (; j + 16 <= by; j += 16) {
+      __m128 m = _mm_min_ps(_mm_min_ps(_mm_loadu_ps(g + j), _mm_loadu_ps(g + j + 4)),
+                            _mm_min_ps(_mm_loadu_ps(g + j + 8), _mm_loadu_ps(g + j + 12)));
+      if (!_mm_movemask_ps(_mm_cmplt_ps(m, vt))) continue;
+      for (int t = j; t < j + 16; t++)
+        if (g[t] < thr) {
+          list_insert_f(lv, li, &cnt, cap, g[t], j0 + t);
+          if (cnt == cap) thr = lv[cap - 1];
+        }
+      vt = _mm_set1_ps(thr);
+    }
+#endif
     for (; j + 8 <= by; j += 8) {
-      double m01 = MIN2(g[j], g[j + 1]), m23 = MIN2(g[j + 2], g[j + 3]);
-      double m45 = MIN2(g[j + 4], g[j + 5]), m67 = MIN2(g[j + 6], g[j + 7]);
+      float m01 = MIN2(g[j], g[j + 1]), m23 = MIN2(g[j + 2], g[j + 3]);
+      float m45 = MIN2(g[j + 4], g[j + 5]), m67 = MIN2(g[j + 6], g[j + 7]);
       if (MIN2(MIN2(m01, m23), MIN2(m45, m67)) >= thr) continue;
       for (int t = j; t < j + 8; t++)
         if (g[t] < thr) {
-          list_insert(lv, li, &cnt, cap, g[t], j0 + t);
+          list_insert_f(lv, li, &cnt, cap, g[t], j0 + t);
           if (cnt == cap) thr = lv[cap - 1];
         }
     }
     for (; j < by; j++)
       if (g[j] < thr) {
-        list_insert(lv, li, &cnt, cap, g[j], j0 + j);
+        list_insert_f(lv, li, &cnt, cap, g[j], j0 + j);
         if (cnt == cap) thr = lv[cap - 1];
       }
     w->cnt[r] = cnt;
   }
 }
 
-/* Turns the candidate list of query row x into the exact K nearest. */
-static void brute_finish_row(const sm_knn *ix, const double *x, double xn, const double *lv,
-                             const int32_t *li, int K, int cap, double *dv, int32_t *iv) {
-  const double u = 1.1102230246251565e-16;
+/* Exact K nearest among n candidate points cand (ascending indices) of query x, by
+ * (distance, index): the answer of exact_row when cand holds every point within the K-th
+ * nearest distance. */
+static void exact_among(const sm_knn *ix, const double *x, const int32_t *cand, int n, int K,
+                        double *dv, int32_t *iv) {
+  int cnt = 0;
+  for (int c = 0; c < n; c++) {
+    double s = sm_knn_dist2(x, ix->Y + (size_t)cand[c] * ix->d, ix->d);
+    if (cnt < K || s < dv[K - 1]) list_insert(dv, iv, &cnt, K, s, cand[c]);
+  }
+}
+
+/* A row the list did not certify (near-ties, a dense cluster): its screening values
+ * against all of Y again (sgemv), every point within lv_K + 2 delta of them kept (a
+ * superset of the points within the K-th nearest distance, see DESIGN), then exact
+ * distances on those. A direct scan when there are too many. */
+static void rescreen_row(const sm_knn *ix, brute_ws *w, const float *xc, const double *x,
+                         double thr, int K, double *dv, int32_t *iv) {
+  int d = ix->d, n = 0;
+  cblas_sgemv(CblasRowMajor, CblasNoTrans, ix->ny, d + 1, 1.0f, ix->Ya, d + 1, xc, 1, 0.0f,
+              w->row, 1);
+  for (int32_t j = 0; j < ix->ny; j++) {
+    if (w->row[j] > thr) continue;
+    if (n == RESCREEN_MAX) {
+      exact_row(ix, x, K, dv, iv);
+      return;
+    }
+    w->iv[n++] = j;
+  }
+  exact_among(ix, x, w->iv, n, K, dv, iv);
+}
+
+/* Turns the screened list of query row x (xn = |s (x - center)|^2, infinite when the row
+ * was not screened; xc its float row) into the exact K nearest; see DESIGN. */
+static void brute_finish_row(const sm_knn *ix, brute_ws *w, const float *xc, const double *x,
+                             double xn, const float *lv, const int32_t *li, int K, int cap,
+                             double *dv, int32_t *iv) {
+  const double u = 5.9604644775390625e-08; /* 2^-24 */
   double delta = 4.0 * (ix->d + 4) * u * (xn + ix->ymax2);
-  if (cap > K && lv[K] - lv[K - 1] <= 2 * delta) {
+  if (!isfinite(delta)) {
     exact_row(ix, x, K, dv, iv);
     return;
   }
-  for (int r = 0; r < K; r++) {
-    iv[r] = li[r];
-    dv[r] = sm_knn_dist2(x, ix->Y + (size_t)li[r] * ix->d, ix->d);
+  if (cap < ix->ny && (double)lv[cap - 1] - (double)lv[K - 1] <= 2 * delta) {
+    rescreen_row(ix, w, xc, x, (double)lv[K - 1] + 2 * delta, K, dv, iv);
+    return;
   }
-  sort_pairs(dv, iv, K);
+  for (int r = 0; r < cap; r++) {
+    w->iv[r] = li[r];
+    w->dv[r] = sm_knn_dist2(x, ix->Y + (size_t)li[r] * ix->d, ix->d);
+  }
+  sort_pairs(w->dv, w->iv, cap);
+  memcpy(dv, w->dv, (size_t)K * sizeof *dv);
+  memcpy(iv, w->iv, (size_t)K * sizeof *iv);
 }
+
+/* Largest |s (x - center)|^2 screened in float: beyond it the row is scanned directly
+ * (its float products could overflow, and its delta would fail the test anyway). */
+#define SCREEN_MAX_XN 1e24
 
 static void brute_block(const sm_knn *ix, brute_ws *w, const double *X, int bx, int K,
                         int cap, int32_t *idx, double *dist2) {
   int d = ix->d;
   for (int r = 0; r < bx; r++) {
-    double s = 0, *xc = w->Xc + (size_t)r * (d + 1);
+    double s = 0;
+    float *xc = w->Xc + (size_t)r * (d + 1);
     for (int t = 0; t < d; t++) {
-      xc[t] = X[(size_t)r * d + t] - ix->center[t];
-      s += xc[t] * xc[t];
+      double c = ix->scale * (X[(size_t)r * d + t] - ix->center[t]);
+      s += c * c;
     }
+    int ok = s <= SCREEN_MAX_XN;
+    for (int t = 0; t < d; t++)
+      xc[t] = ok ? (float)(ix->scale * (X[(size_t)r * d + t] - ix->center[t])) : 0.0f;
     xc[d] = 1; /* picks up |y|^2 from the last column of Ya */
-    w->xn[r] = s;
+    w->xn[r] = ok ? s : INFINITY;
     w->cnt[r] = 0;
   }
   for (int32_t j0 = 0; j0 < ix->ny; j0 += BLK_Y) {
     int by = ix->ny - j0 < BLK_Y ? ix->ny - j0 : BLK_Y;
-    cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasTrans, bx, by, d + 1, 1.0, w->Xc, d + 1,
-                ix->Ya + (size_t)j0 * (d + 1), d + 1, 0.0, w->G, by);
+    cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasTrans, bx, by, d + 1, 1.0f, w->Xc, d + 1,
+                ix->Ya + (size_t)j0 * (d + 1), d + 1, 0.0f, w->G, by);
     brute_scan(w, bx, j0, by, cap);
   }
   for (int r = 0; r < bx; r++)
-    brute_finish_row(ix, X + (size_t)r * d, w->xn[r], w->lv + (size_t)r * cap,
+    brute_finish_row(ix, w, w->Xc + (size_t)r * (d + 1), X + (size_t)r * d, w->xn[r],
+                     w->lv + (size_t)r * cap,
                      w->li + (size_t)r * cap, K, cap, dist2 + (size_t)r * K,
                      idx + (size_t)r * K);
 }
 
 static int query_brute(const sm_knn *ix, const double *X, int32_t nx, int K, int32_t *idx,
                        double *dist2, sm_error *err) {
-  int cap = K < ix->ny ? K + 1 : K; /* the (K+1)-th candidate certifies the K-th */
+  /* The (K + SCREEN_EXTRA)-th candidate certifies the K-th. */
+  int cap = K + SCREEN_EXTRA < ix->ny ? K + SCREEN_EXTRA : ix->ny;
   brute_ws w;
-  if (brute_ws_alloc(&w, ix->d, cap)) {
+  if (brute_ws_alloc(&w, ix->d, ix->ny, cap)) {
     brute_ws_free(&w);
     return sm_error_set(err, SM_ENOMEM, "knn: brute-force workspace (K=%d, d=%d)", K, ix->d);
   }

@@ -138,6 +138,26 @@ static void test_knn_cancellation(void) {
   free(X);
 }
 
+/* Brute force screens in float32 after scaling Y by a power of two: coordinates near the
+ * ends of the double range, and queries far outside Y (not screenable in float), must
+ * still give the exact answer. */
+static void test_knn_scales(void) {
+  uint64_t s = 77;
+  int d = 24, ny = 1500, nx = 120;
+  const double scales[] = {1e-150, 1e-30, 1e30, 1e150};
+  for (size_t a = 0; a < sizeof scales / sizeof *scales; a++) {
+    double *Y = random_points(ny, d, -1, 1, &s), *X = random_points(nx, d, -1, 1, &s);
+    for (int64_t i = 0; i < (int64_t)ny * d; i++) Y[i] *= scales[a];
+    for (int i = 0; i < nx; i++) {
+      double far = i % 3 == 0 ? 1e20 : i % 3 == 1 ? 1e3 : 1; /* outside, near, inside */
+      for (int t = 0; t < d; t++) X[(size_t)i * d + t] *= far * scales[a];
+    }
+    for (int K = 1; K <= 17; K += 8) run_knn(Y, ny, X, nx, d, K, SM_KNN_BRUTE, 1);
+    free(Y);
+    free(X);
+  }
+}
+
 static void test_knn_errors(void) {
   double Y[6] = {0, 1, 2, 3, 4, 5}, X[2] = {0, NAN};
   sm_knn *ix = NULL;
@@ -530,6 +550,7 @@ int main(void) {
   test_knn_random();
   test_knn_ties();
   test_knn_cancellation();
+  test_knn_scales();
   test_knn_errors();
   test_identity();
   test_p2p_formula();
