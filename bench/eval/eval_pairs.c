@@ -315,6 +315,11 @@ static int write_visual(const pair_data *pd, const sm_match_result *res, const c
   if (!rc) rc = write_ply(path, x, cx);
   snprintf(path, sizeof path, "%s/%s_target.ply", dir, pd->spec->name);
   if (!rc) rc = write_ply(path, y, cy);
+  /* The map itself, in the PLY files' numbering: the renderer aligns the target to the
+   * source through it so both are seen from the same side. */
+  snprintf(path, sizeof path, "%s/%s_target_to_source.txt", dir, pd->spec->name);
+  sm_error err;
+  if (!rc) rc = sm_map_save(path, res->T_yx, y->nv, &err);
   free(cx);
   free(cy);
   return rc;
