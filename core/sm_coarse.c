@@ -273,36 +273,81 @@ static void lap_weights(const side_ops *x, const side_ops *y, double *w) {
   for (int i = 0; i < k * k; i++) w[i] *= s;
 }
 
-int sm_coarse_fmap(const sm_coarse_side *x, const sm_coarse_side *y, int nd,
-                   const sm_coarse_opts *o, double *C, sm_error *err) {
+struct sm_coarse_prep {
+  side_ops ops;
+  int nd, op_stride;
+};
+
+static int check_side(const sm_coarse_side *s, int nd, const sm_coarse_opts *o,
+                      sm_error *err) {
   int k = o->k0;
-  if (k < 2 || k > x->lb->k || k > y->lb->k || nd < 1 || o->op_stride < 1)
+  if (!s || !s->lb || !s->mesh || !s->desc || k < 2 || k > s->lb->k || nd < 1 ||
+      o->op_stride < 1)
     return sm_error_set(err, SM_EINVAL, "coarse map: k0 = %d, nd = %d, stride = %d invalid", k,
                         nd, o->op_stride);
-  if (x->lb->gram_L || y->lb->gram_L)
+  if (s->lb->gram_L)
     return sm_error_set(err, SM_EINVAL, "coarse map: needs orthonormal LB bases");
-  side_ops sx, sy;
-  int rc = side_build(&sx, x, nd, o);
-  if (!rc) rc = side_build(&sy, y, nd, o);
-  problem p = {.x = &sx, .y = &sy, .o = o, .k0 = k, .nd = nd};
-  double *buf = rc ? NULL : malloc((size_t)k * k * 7 * sizeof *buf);
-  if (!rc && buf) {
-    p.AyAyT = buf;
-    p.lapw = buf + k * k;
-    p.E = buf + 2 * k * k;
-    p.T1 = buf + 3 * k * k;
-    cblas_dgemm(CblasColMajor, CblasNoTrans, CblasTrans, k, k, nd, 1.0, sy.A, k, sy.A, k, 0.0,
-                p.AyAyT, k);
-    lap_weights(&sx, &sy, p.lapw);
-    term_scales(&p);
-    p.fix_first = 1;
-    solve_cg(&p, C, buf + 4 * k * k, buf + 5 * k * k, buf + 6 * k * k);
-  } else {
-    rc = sm_error_set(err, SM_ENOMEM, "coarse map: out of memory");
+  return 0;
+}
+
+int sm_coarse_prepare(const sm_coarse_side *s, int nd, const sm_coarse_opts *o,
+                      sm_coarse_prep **out, sm_error *err) {
+  *out = NULL;
+  int rc = check_side(s, nd, o, err);
+  if (rc) return rc;
+  sm_coarse_prep *p = calloc(1, sizeof *p);
+  if (!p || side_build(&p->ops, s, nd, o)) {
+    if (p) side_free(&p->ops);
+    free(p);
+    return sm_error_set(err, SM_ENOMEM, "coarse map: out of memory");
   }
+  p->nd = nd;
+  p->op_stride = o->op_stride;
+  *out = p;
+  return 0;
+}
+
+int sm_coarse_prep_fits(const sm_coarse_prep *p, int nd, const sm_coarse_opts *o) {
+  return p && p->nd == nd && p->op_stride == o->op_stride && p->ops.k0 == o->k0;
+}
+
+void sm_coarse_prep_destroy(sm_coarse_prep *p) {
+  if (!p) return;
+  side_free(&p->ops);
+  free(p);
+}
+
+int sm_coarse_fmap_prepared(const sm_coarse_prep *x, const sm_coarse_prep *y,
+                            const sm_coarse_opts *o, double *C, sm_error *err) {
+  if (!x || !y || !C || x->nd != y->nd || !sm_coarse_prep_fits(x, x->nd, o) ||
+      !sm_coarse_prep_fits(y, y->nd, o))
+    return sm_error_set(err, SM_EINVAL, "coarse map: prepared sides do not fit the options");
+  int k = o->k0, nd = x->nd;
+  problem p = {.x = &x->ops, .y = &y->ops, .o = o, .k0 = k, .nd = nd};
+  double *buf = malloc((size_t)k * k * 7 * sizeof *buf);
+  if (!buf) return sm_error_set(err, SM_ENOMEM, "coarse map: out of memory");
+  p.AyAyT = buf;
+  p.lapw = buf + k * k;
+  p.E = buf + 2 * k * k;
+  p.T1 = buf + 3 * k * k;
+  cblas_dgemm(CblasColMajor, CblasNoTrans, CblasTrans, k, k, nd, 1.0, y->ops.A, k, y->ops.A, k,
+              0.0, p.AyAyT, k);
+  lap_weights(&x->ops, &y->ops, p.lapw);
+  term_scales(&p);
+  p.fix_first = 1;
+  solve_cg(&p, C, buf + 4 * k * k, buf + 5 * k * k, buf + 6 * k * k);
   free(buf);
-  side_free(&sx);
-  side_free(&sy);
+  return 0;
+}
+
+int sm_coarse_fmap(const sm_coarse_side *x, const sm_coarse_side *y, int nd,
+                   const sm_coarse_opts *o, double *C, sm_error *err) {
+  sm_coarse_prep *px = NULL, *py = NULL;
+  int rc = sm_coarse_prepare(x, nd, o, &px, err);
+  if (!rc) rc = sm_coarse_prepare(y, nd, o, &py, err);
+  if (!rc) rc = sm_coarse_fmap_prepared(px, py, o, C, err);
+  sm_coarse_prep_destroy(px);
+  sm_coarse_prep_destroy(py);
   return rc;
 }
 

@@ -44,6 +44,21 @@ typedef struct sm_coarse_side {
 int sm_coarse_fmap(const sm_coarse_side *x, const sm_coarse_side *y, int nd,
                    const sm_coarse_opts *o, double *C, sm_error *err);
 
+/* The same in two steps, for callers that keep a shape's part: the operators of one side
+ * depend only on that side, nd, o->k0 and o->op_stride (built in O(n k0^2 nd / stride),
+ * most of a coarse map's cost), and sm_coarse_fmap_prepared solves with two of them. A
+ * prepared side borrows s->lb (its eigenvalues) for its whole life and is read only once
+ * built (shareable between threads). sm_coarse_fmap_prepared checks that both sides were
+ * built with the k0, nd and op_stride of o (SM_EINVAL otherwise). */
+typedef struct sm_coarse_prep sm_coarse_prep;
+int sm_coarse_prepare(const sm_coarse_side *s, int nd, const sm_coarse_opts *o,
+                      sm_coarse_prep **out, sm_error *err);
+/* 1 if p was built for these options and nd, else 0. */
+int sm_coarse_prep_fits(const sm_coarse_prep *p, int nd, const sm_coarse_opts *o);
+void sm_coarse_prep_destroy(sm_coarse_prep *p);
+int sm_coarse_fmap_prepared(const sm_coarse_prep *x, const sm_coarse_prep *y,
+                            const sm_coarse_opts *o, double *C, sm_error *err);
+
 /* Area-weighted mean, over X's faces, of the sign agreement between the image triangle
  * (T[a], T[b], T[c]) taken in Y and Y's vertex normals there: +1 = every face keeps its
  * orientation, -1 = a mirror. Faces whose image is degenerate count 0. */

@@ -223,9 +223,8 @@ static int32_t argmax(const double *a, int32_t n) {
   return best;
 }
 
-/* ns samples S of the n points P (row stride ldp, first dim coordinates), greedy
- * farthest-first from the point farthest from point 0; cellw[s] = mass of the points whose
- * nearest sample is S[s]. O(n ns dim). */
+/* The argmax of the distance to the samples so far is tracked in the update pass (first
+ * index among equals, like a separate scan): one pass over the points per sample. */
 static int fps(const double *P, int32_t n, int dim, int ldp, const double *mass, int32_t ns,
                int32_t *S, double *cellw, sm_error *err) {
   double *md = malloc((size_t)n * sizeof(double));
@@ -239,20 +238,33 @@ static int fps(const double *P, int32_t n, int dim, int ldp, const double *mass,
   S[0] = argmax(md, n);
   for (int32_t s = 0; s < ns; s++) {
     const double *c = P + (size_t)S[s] * ldp;
+    double best = -1;
+    int32_t bi = 0;
     for (int32_t i = 0; i < n; i++) {
       double d = sqdist(P + (size_t)i * ldp, c, dim);
       if (s == 0 || d < md[i]) {
         md[i] = d;
         owner[i] = s;
       }
+      if (md[i] > best) {
+        best = md[i];
+        bi = i;
+      }
     }
-    if (s + 1 < ns) S[s + 1] = argmax(md, n);
+    if (s + 1 < ns) S[s + 1] = bi;
   }
   for (int32_t s = 0; s < ns; s++) cellw[s] = 0;
   for (int32_t i = 0; i < n; i++) cellw[owner[i]] += mass[i];
   free(md);
   free(owner);
   return 0;
+}
+
+int sm_fmap_fps(const double *P, int32_t n, int dim, int ldp, const double *mass, int32_t ns,
+                int32_t *S, double *cellw, sm_error *err) {
+  if (!P || !mass || !S || !cellw || n < 1 || dim < 1 || ldp < dim || ns < 1 || ns > n)
+    return sm_error_set(err, SM_EINVAL, "fmap: bad sampling arguments (n=%d, ns=%d)", n, ns);
+  return fps(P, n, dim, ldp, mass, ns, S, cellw, err);
 }
 
 /* ---- ZoomOut -------------------------------------------------------------------------- */
@@ -322,6 +334,11 @@ static int check_zoomout(const sm_fmap_pair *pairs, int np, const sm_zoomout_opt
     if (pairs[p].k0 < 1 || pairs[p].k0 > pairs[p].k)
       return sm_error_set(err, SM_EINVAL, "zoomout: pair %d k0=%d outside [1, k=%d]", p,
                           pairs[p].k0, pairs[p].k);
+  int32_t nx = pairs[0].x->n, ny = pairs[0].y->n;
+  if (o->samples_x && o->nsample_x < nx && (!o->cellw_x || check_map(o->samples_x, o->nsample_x, nx, err)))
+    return sm_error_set(err, SM_EINVAL, "zoomout: bad X samples");
+  if (o->samples_y && o->nsample_y < ny && check_map(o->samples_y, o->nsample_y, ny, err))
+    return sm_error_set(err, SM_EINVAL, "zoomout: bad Y samples");
   return check_map(T0, pairs[0].x->n, pairs[0].y->n, err);
 }
 
@@ -366,19 +383,26 @@ static int zsample(zctx *z, sm_error *err) {
   if (nsx < z->nx) {
     z->fit = malloc((size_t)nsx * sizeof(int32_t));
     if (!z->fit) return sm_error_set(err, SM_ENOMEM, "zoomout: %d samples", nsx);
-    rc = o->pos_x ? fps(o->pos_x, z->nx, 3, 3, q->x->mass, nsx, z->fit, z->sqw, err)
-                  : fps(q->UX, z->nx, q->k0, q->K, q->x->mass, nsx, z->fit, z->sqw, err);
+    if (o->samples_x && o->cellw_x) {
+      memcpy(z->fit, o->samples_x, (size_t)nsx * sizeof(int32_t));
+      memcpy(z->sqw, o->cellw_x, (size_t)nsx * sizeof(double));
+    } else {
+      rc = o->pos_x ? fps(o->pos_x, z->nx, 3, 3, q->x->mass, nsx, z->fit, z->sqw, err)
+                    : fps(q->UX, z->nx, q->k0, q->K, q->x->mass, nsx, z->fit, z->sqw, err);
+    }
   } else {
     memcpy(z->sqw, q->x->mass, (size_t)nsx * sizeof(double));
   }
   for (int32_t s = 0; s < nsx; s++) z->sqw[s] = sqrt(z->sqw[s]);
   if (rc || nsy == z->ny) return rc;
-  double *cw = malloc((size_t)nsy * sizeof(double));
   z->cand = malloc((size_t)nsy * sizeof(int32_t));
-  if (!cw || !z->cand) {
-    free(cw);
-    return sm_error_set(err, SM_ENOMEM, "zoomout: %d Y samples", nsy);
+  if (!z->cand) return sm_error_set(err, SM_ENOMEM, "zoomout: %d Y samples", nsy);
+  if (o->samples_y) {
+    memcpy(z->cand, o->samples_y, (size_t)nsy * sizeof(int32_t));
+    return 0;
   }
+  double *cw = malloc((size_t)nsy * sizeof(double));
+  if (!cw) return sm_error_set(err, SM_ENOMEM, "zoomout: %d Y samples", nsy);
   rc = o->pos_y ? fps(o->pos_y, z->ny, 3, 3, q->y->mass, nsy, z->cand, cw, err)
                 : fps(q->UY, z->ny, q->k0, q->K, q->y->mass, nsy, z->cand, cw, err);
   free(cw);

@@ -94,6 +94,12 @@ typedef struct sm_zoomout_opts {
   int full_y_last;       /* with nsample_y: final iterations on all Y candidates; 0 = 3 */
   const double *pos_x;   /* n_X x 3 positions for farthest-point sampling, or NULL */
   const double *pos_y;   /* n_Y x 3, or NULL */
+  /* Optional precomputed samples (e.g. cached per shape): when set, used instead of
+   * sampling. samples_x / cellw_x: nsample_x vertices of X and the masses of their cells,
+   * as sm_fmap_fps returns them; samples_y: nsample_y vertices of Y. */
+  const int32_t *samples_x;
+  const double *cellw_x;
+  const int32_t *samples_y;
   sm_knn_opts knn;       /* nearest-neighbour strategy */
   int (*cancel)(void *ud);
   void *cancel_ud;
@@ -107,6 +113,13 @@ typedef struct sm_zoomout_stats {
   double t_knn;    /* kNN build + query */
   double t_total;
 } sm_zoomout_stats;
+
+/* Farthest-point sampling as ZoomOut does it: ns vertices S of the n points P (row stride
+ * ldp, first dim coordinates), greedy farthest-first from the point farthest from point 0;
+ * cellw[s] = mass of the points whose nearest sample is S[s]. Deterministic. O(n ns dim).
+ * Errors: SM_EINVAL, SM_ENOMEM. */
+int sm_fmap_fps(const double *P, int32_t n, int dim, int ldp, const double *mass, int32_t ns,
+                int32_t *S, double *cellw, sm_error *err);
 
 /* step 1, nsample_x = 2000, nsample_y = 0 (all), no positions, default kNN. */
 void sm_zoomout_opts_default(sm_zoomout_opts *o);

@@ -15,6 +15,81 @@
 #include "sm_shell.h"
 #include "sm_sinkhorn.h"
 
+/* ---- per-shape cache ------------------------------------------------------------------ */
+
+/* Each entry is computed once, under the lock, by the first sm_match that needs it, and
+ * never changed or freed before sm_shape_destroy: callers use the pointers without the
+ * lock. One variant per entry (the first one asked for, in practice the defaults); other
+ * parameters are computed per call. The lock is held while computing (tens of ms), so
+ * concurrent matches of one shape compute it once. */
+struct sm_shape_cache {
+  pthread_mutex_t lock;
+  int32_t fps_n;           /* samples in fps (0 = not computed) */
+  int32_t *fps;            /* farthest-point samples on the vertex positions */
+  double *fps_cellw;       /* their cell masses */
+  sm_coarse_prep *coarse;  /* coarse-map operators from the WKS descriptors */
+};
+
+static void cache_destroy(struct sm_shape_cache *c) {
+  if (!c) return;
+  pthread_mutex_destroy(&c->lock);
+  free(c->fps);
+  free(c->fps_cellw);
+  sm_coarse_prep_destroy(c->coarse);
+  free(c);
+}
+
+static struct sm_shape_cache *cache_create(void) {
+  struct sm_shape_cache *c = calloc(1, sizeof *c);
+  if (c && pthread_mutex_init(&c->lock, NULL)) {
+    free(c);
+    return NULL;
+  }
+  return c;
+}
+
+/* ns farthest-point samples of s's vertices and their cell masses, cached; NULL pointers
+ * when not cacheable (no cache, another ns cached, or no memory: ZoomOut samples itself). */
+static void shape_fps(const sm_shape *s, int32_t ns, const int32_t **S, const double **w) {
+  struct sm_shape_cache *c = s->cache;
+  *S = NULL;
+  *w = NULL;
+  if (!c || ns < 1 || ns >= s->mesh->nv) return;
+  pthread_mutex_lock(&c->lock);
+  if (!c->fps_n) {
+    int32_t *idx = malloc((size_t)ns * sizeof *idx);
+    double *cw = malloc((size_t)ns * sizeof *cw);
+    if (idx && cw &&
+        !sm_fmap_fps(s->mesh->V, s->mesh->nv, 3, 3, s->lb->mass, ns, idx, cw, NULL)) {
+      c->fps = idx;
+      c->fps_cellw = cw;
+      c->fps_n = ns;
+    } else {
+      free(idx);
+      free(cw);
+    }
+  }
+  if (c->fps_n == ns) {
+    *S = c->fps;
+    *w = c->fps_cellw;
+  }
+  pthread_mutex_unlock(&c->lock);
+}
+
+/* The coarse-map operators of s from its own descriptors, cached (NULL: build per call). */
+static const sm_coarse_prep *shape_coarse(const sm_shape *s, const sm_coarse_opts *co) {
+  struct sm_shape_cache *c = s->cache;
+  if (!c) return NULL;
+  pthread_mutex_lock(&c->lock);
+  if (!c->coarse) {
+    sm_coarse_side side = {s->mesh, s->lb, s->desc};
+    if (sm_coarse_prepare(&side, s->n_desc, co, &c->coarse, NULL)) c->coarse = NULL;
+  }
+  const sm_coarse_prep *p = sm_coarse_prep_fits(c->coarse, s->n_desc, co) ? c->coarse : NULL;
+  pthread_mutex_unlock(&c->lock);
+  return p;
+}
+
 void sm_shape_opts_default(sm_shape_opts *o) {
   memset(o, 0, sizeof *o);
   o->k_lb = 100;
@@ -29,6 +104,7 @@ void sm_shape_destroy(sm_shape *s) {
   sm_basis_destroy(s->lb);
   sm_basis_destroy(s->elastic);
   free(s->desc);
+  cache_destroy(s->cache);
   free(s);
 }
 
@@ -59,7 +135,9 @@ int sm_shape_assemble(sm_mesh *mesh, sm_basis *lb, sm_basis *elastic, int n_desc
     sm_shape_destroy(s);
     return sm_error_set(err, SM_EINVAL, "shape: bases do not belong to this mesh");
   }
-  int rc = shape_descriptors(s, n_desc, err);
+  s->cache = cache_create();
+  int rc = s->cache ? shape_descriptors(s, n_desc, err)
+                    : sm_error_set(err, SM_ENOMEM, "shape: out of memory");
   if (rc) {
     sm_shape_destroy(s);
     return rc;
@@ -207,6 +285,10 @@ static int coarse_map(const sm_shape *x, const sm_shape *y, const sm_match_opts 
   double *lx = NULL, *ly = NULL;
   int nd = x->n_desc, ndy = y->n_desc;
   if (nd != ndy) return sm_error_set(err, SM_EINVAL, "descriptor counts differ (%d, %d)", nd, ndy);
+  if (o->nlandmarks == 0) {
+    const sm_coarse_prep *px = shape_coarse(x, &co), *py = shape_coarse(y, &co);
+    if (px && py) return sm_coarse_fmap_prepared(px, py, &co, C, err);
+  }
   if (o->nlandmarks > 0) {
     if (with_landmarks(x, o->landmarks, o->nlandmarks, 2, 0, &lx, &nd) ||
         with_landmarks(y, o->landmarks, o->nlandmarks, 2, 1, &ly, &ndy)) {
@@ -357,6 +439,9 @@ static int refine(const sm_shape *x, const sm_shape *y, const sm_match_opts *o, 
   zo.nsample_y = o->samples;
   zo.pos_x = x->mesh->V;
   zo.pos_y = y->mesh->V;
+  const double *unused;
+  shape_fps(x, zo.nsample_x, &zo.samples_x, &zo.cellw_x);
+  shape_fps(y, zo.nsample_y, &zo.samples_y, &unused);
   zo.cancel = o->cancel;
   zo.cancel_ud = o->cancel_ud;
   double *Cs[2] = {C, NULL};

@@ -15,8 +15,9 @@
  *
  * Contract
  *   sm_shape_prepare copies what it needs from the input mesh (borrowed) and returns a
- *   shape owned by the caller (sm_shape_destroy). Shapes are read only afterwards: one
- *   shape may be used by several concurrent sm_match calls. sm_match writes a result the
+ *   shape owned by the caller (sm_shape_destroy). Shapes are read only afterwards (except
+ *   their internally locked cache of per-shape values): one shape may be used by several
+ *   concurrent sm_match calls. sm_match writes a result the
  *   caller releases with sm_match_result_free. Vertex indices in results are those of the
  *   cleaned meshes (shape->mesh); sm_match_to_input translates a map to the caller's
  *   numbering (mesh->to_input), -1 for input vertices cleaning dropped (unreferenced).
@@ -51,6 +52,11 @@ typedef struct sm_shape {
   double *desc;      /* n x n_desc column-major WKS */
   int n_desc;
   double t_clean, t_lb, t_elastic, t_desc; /* seconds */
+  /* Values that depend only on this shape (ZoomOut's farthest-point samples, the coarse
+   * map's operators), computed by the first sm_match that needs them and kept until
+   * sm_shape_destroy; internally locked, so sharing a shape between threads stays safe.
+   * Created by sm_shape_assemble; NULL = nothing is cached. */
+  struct sm_shape_cache *cache;
 } sm_shape;
 
 void sm_shape_opts_default(sm_shape_opts *o);

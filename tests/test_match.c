@@ -1,6 +1,7 @@
 /* The matching pipeline end to end: self-match against a moved, rescaled, renumbered copy
  * (every basis and init), the mirror test, shape distance properties, and regression bounds
  * on the real pairs of ../shared/data (skipped when absent). */
+#include <pthread.h>
 #include <string.h>
 
 #include "sm_distance.h"
@@ -169,6 +170,72 @@ static void test_distance_properties(void) {
   sm_mesh_destroy(b);
 }
 
+/* The per-shape cache (farthest-point samples, coarse operators): a match that fills it
+ * (two threads at once), one that reads it and one without it give the same maps. */
+typedef struct cache_job {
+  const sm_shape *x, *y;
+  sm_match_result r;
+  int rc;
+} cache_job;
+
+static void cache_match(const sm_shape *x, const sm_shape *y, sm_match_result *r, int *rc) {
+  sm_match_opts o;
+  sm_error err;
+  sm_match_opts_default(&o);
+  o.k1 = 30;
+  o.samples = 300; /* below the 642 vertices: ZoomOut samples, so the samples are cached */
+  o.want_yx = 1;
+  *rc = sm_match(x, y, &o, r, &err);
+}
+
+static void *cache_thread(void *arg) {
+  cache_job *j = arg;
+  cache_match(j->x, j->y, &j->r, &j->rc);
+  return NULL;
+}
+
+static int same_maps(const sm_match_result *a, const sm_match_result *b) {
+  return a->nx == b->nx && a->ny == b->ny &&
+         !memcmp(a->T, b->T, (size_t)a->nx * sizeof *a->T) &&
+         !memcmp(a->T_yx, b->T_yx, (size_t)a->ny * sizeof *a->T_yx);
+}
+
+static void test_shape_cache(void) {
+  sm_mesh *m = blob(3);
+  int32_t *perm = malloc((size_t)m->nv * sizeof *perm);
+  tm_permutation(perm, m->nv, 7);
+  sm_mesh *p = tm_permuted(m, perm);
+  sm_shape *x = prepare(m, 30), *y = prepare(p, 30);
+  cache_job j[2] = {{x, y, {0}, -1}, {x, y, {0}, -1}};
+  pthread_t th;
+  int threaded = pthread_create(&th, NULL, cache_thread, &j[1]) == 0;
+  cache_thread(&j[0]);
+  if (threaded) pthread_join(th, NULL);
+  else cache_thread(&j[1]);
+  REQUIRE(j[0].rc == 0 && j[1].rc == 0);
+  CHECK(same_maps(&j[0].r, &j[1].r));
+  sm_match_result warm, cold;
+  int rc_w, rc_c;
+  cache_match(x, y, &warm, &rc_w);
+  struct sm_shape_cache *cx = x->cache, *cy = y->cache;
+  x->cache = y->cache = NULL; /* nothing cached: everything computed in the call */
+  cache_match(x, y, &cold, &rc_c);
+  x->cache = cx;
+  y->cache = cy;
+  REQUIRE(rc_w == 0 && rc_c == 0);
+  CHECK(same_maps(&j[0].r, &warm));
+  CHECK(same_maps(&warm, &cold));
+  sm_match_result_free(&j[0].r);
+  sm_match_result_free(&j[1].r);
+  sm_match_result_free(&warm);
+  sm_match_result_free(&cold);
+  sm_shape_destroy(x);
+  sm_shape_destroy(y);
+  sm_mesh_destroy(m);
+  sm_mesh_destroy(p);
+  free(perm);
+}
+
 typedef struct real_pair {
   const char *name, *src, *tgt, *gt; /* gt NULL = identity through a permutation of tgt */
   double bound;                       /* mean geodesic error bound (from bench_match) */
@@ -229,6 +296,7 @@ int main(int argc, char **argv) {
     for (int i = 0; i < 2; i++) self_match_case(bases[b], inits[i]);
   test_mirror();
   test_distance_properties();
+  test_shape_cache();
   /* Bounds: the mean geodesic errors bench_match measured with the default pipeline
    * (homer 0.0238, head 0.0107, lion -> cat 0.0360, man -> woman 0.0022) plus ~20%. */
   const real_pair pairs[] = {
