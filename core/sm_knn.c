@@ -300,7 +300,7 @@ static int brute_ws_alloc(brute_ws *w, int d, int32_t ny, int cap) {
   memset(w, 0, sizeof *w);
   w->row = malloc((size_t)ny * sizeof(float));
   w->Xc = malloc((size_t)BLK_X * (d + 1) * sizeof(float));
-  w->G = malloc((size_t)BLK_X * BLK_Y * sizeof(float));
+  w->G = calloc((size_t)BLK_X * BLK_Y, sizeof(float)); /* kept zero between blocks */
   w->lv = malloc((size_t)BLK_X * cap * sizeof(float));
   w->xn = malloc(BLK_X * sizeof(double));
   int nbuf = cap > RESCREEN_MAX ? cap : RESCREEN_MAX;
@@ -357,6 +357,10 @@ static void brute_scan(brute_ws *w, int bx, int32_t j0, int by, int cap) {
         if (cnt == cap) thr = lv[cap - 1];
       }
     w->cnt[r] = cnt;
+    /* Zeroed while still in cache, so that the next GEMM can accumulate (beta = 1): with
+     * beta = 0 OpenBLAS clears C in a separate pass, which cost half as much as the GEMM
+     * itself at d = 20. */
+    memset(w->G + (size_t)r * by, 0, (size_t)by * sizeof(float));
   }
 }
 
@@ -440,7 +444,7 @@ static void brute_block(const sm_knn *ix, brute_ws *w, const double *X, int bx, 
   for (int32_t j0 = 0; j0 < ix->ny; j0 += BLK_Y) {
     int by = ix->ny - j0 < BLK_Y ? ix->ny - j0 : BLK_Y;
     cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasTrans, bx, by, d + 1, 1.0f, w->Xc, d + 1,
-                ix->Ya + (size_t)j0 * (d + 1), d + 1, 0.0f, w->G, by);
+                ix->Ya + (size_t)j0 * (d + 1), d + 1, 1.0f, w->G, by);
     brute_scan(w, bx, j0, by, cap);
   }
   for (int r = 0; r < bx; r++)
