@@ -28,6 +28,8 @@ struct sm_shape_cache {
   int32_t *fps;            /* farthest-point samples on the vertex positions */
   double *fps_cellw;       /* their cell masses */
   sm_coarse_prep *coarse;  /* coarse-map operators from the WKS descriptors */
+  int32_t *sym;            /* the shape's left/right self-map (self_symmetry), or NULL */
+  int sym_key[5];          /* the options it was computed with: see sym_key */
 };
 
 static void cache_destroy(struct sm_shape_cache *c) {
@@ -36,6 +38,7 @@ static void cache_destroy(struct sm_shape_cache *c) {
   free(c->fps);
   free(c->fps_cellw);
   sm_coarse_prep_destroy(c->coarse);
+  free(c->sym);
   free(c);
 }
 
@@ -487,9 +490,34 @@ static int result_alloc(sm_match_result *r, const sm_shape *x, const sm_shape *y
   return r->T && r->C && (!o->want_yx || r->T_yx) ? SM_OK : SM_ENOMEM;
 }
 
+/* The options self_symmetry's result depends on. */
+static void sym_key(const sm_match_opts *so, int key[5]) {
+  key[0] = so->k0;
+  key[1] = so->k1;
+  key[2] = so->step;
+  key[3] = so->samples;
+  key[4] = so->coarse_k;
+}
+
 /* The intrinsic left/right symmetry of Y as a point map S: Y -> Y: a coarse self-map asking
  * for an orientation-reversing C, refined by ZoomOut in the LB basis (a symmetry is an
- * isometry, which the LB basis represents well). */
+ * isometry, which the LB basis represents well). It depends on Y alone, so it is cached in
+ * Y's cache; computed outside the lock (it takes the lock itself for the samples and the
+ * coarse operators); two threads may both compute it, the first to finish publishes. */
+static int symmetry_compute(const sm_shape *y, const sm_match_opts *so, int32_t *S,
+                            sm_error *err) {
+  int k = so->coarse_k;
+  double *C0 = malloc((size_t)k * k * sizeof *C0);
+  double *C = malloc((size_t)so->k1 * so->k1 * sizeof *C);
+  int rc = (!C0 || !C) ? sm_error_set(err, SM_ENOMEM, "symmetry: out of memory") : SM_OK;
+  if (!rc) rc = coarse_map(y, y, so, -1, C0, err);
+  if (!rc) rc = initial_map(y, y, so, C0, S, err);
+  if (!rc) rc = refine(y, y, so, S, C, NULL, err);
+  free(C0);
+  free(C);
+  return rc;
+}
+
 static int self_symmetry(const sm_shape *y, const sm_match_opts *o, int32_t *S, sm_error *err) {
   sm_match_opts so = *o;
   so.basis = SM_MATCH_LB;
@@ -498,15 +526,26 @@ static int self_symmetry(const sm_shape *y, const sm_match_opts *o, int32_t *S, 
   so.landmarks = NULL;
   so.k1 = o->k1 < y->lb->k ? o->k1 : y->lb->k;
   so.k0 = o->k0 < so.k1 ? o->k0 : so.k1;
-  int k = so.coarse_k;
-  double *C0 = malloc((size_t)k * k * sizeof *C0), *C = malloc((size_t)so.k1 * so.k1 * sizeof *C);
-  int rc = (!C0 || !C) ? sm_error_set(err, SM_ENOMEM, "symmetry: out of memory") : SM_OK;
-  if (!rc) rc = coarse_map(y, y, &so, -1, C0, err);
-  if (!rc) rc = initial_map(y, y, &so, C0, S, err);
-  if (!rc) rc = refine(y, y, &so, S, C, NULL, err);
-  free(C0);
-  free(C);
-  return rc;
+  struct sm_shape_cache *c = y->cache;
+  size_t bytes = (size_t)y->mesh->nv * sizeof *S;
+  int key[5], hit = 0;
+  sym_key(&so, key);
+  if (c) {
+    pthread_mutex_lock(&c->lock);
+    hit = c->sym && !memcmp(c->sym_key, key, sizeof key);
+    if (hit) memcpy(S, c->sym, bytes);
+    pthread_mutex_unlock(&c->lock);
+  }
+  if (hit) return SM_OK;
+  int rc = symmetry_compute(y, &so, S, err);
+  if (rc || !c) return rc;
+  pthread_mutex_lock(&c->lock);
+  if (!c->sym && (c->sym = malloc(bytes))) {
+    memcpy(c->sym, S, bytes);
+    memcpy(c->sym_key, key, sizeof key);
+  }
+  pthread_mutex_unlock(&c->lock);
+  return SM_OK;
 }
 
 /* A mirrored result (most image triangles flipped) means the descriptors led to the

@@ -140,6 +140,11 @@ static void test_mirror(void) {
   CHECK_MSG(pres >= 0.8 * m->nv, "mirror: %d of %d vertices on their partner", pres, m->nv);
   CHECK_MSG(mirror < 0.05 * m->nv, "mirror: %d of %d vertices on the mirror", mirror, m->nv);
   CHECK_MSG(dist / m->nv < 0.05, "mirror: mean distance to partner %.4f", dist / m->nv);
+  /* Again, with y's self-symmetry now cached: the same result. */
+  sm_match_result r2;
+  match(x, y, SM_MATCH_ELASTIC, SM_INIT_SINKHORN, 40, &r2);
+  CHECK(r2.flipped == r.flipped && !memcmp(r.T, r2.T, (size_t)m->nv * sizeof *r.T));
+  sm_match_result_free(&r2);
   sm_match_result_free(&r);
   sm_shape_destroy(x);
   sm_shape_destroy(y);
