@@ -120,6 +120,17 @@ static int assign(const double *EY, int32_t ny, const double *EX, int32_t nx, in
   return 0;
 }
 
+/* T[i] = nearest row of EY to row i of EX and T_yx[j] = nearest row of EX to row j of EY:
+ * what two assign calls give, from one pass (sm_knn_query_both). */
+static int assign_both(const double *EY, int32_t ny, const double *EX, int32_t nx, int D,
+                       const sm_knn_opts *ko, int32_t *T, int32_t *T_yx, sm_error *err) {
+  sm_knn *ix = NULL;
+  int rc = sm_knn_build(EY, ny, D, ko, &ix, err);
+  if (!rc) rc = sm_knn_query_both(ix, EX, nx, 1, T, NULL, T_yx, NULL, err);
+  sm_knn_destroy(ix);
+  return rc;
+}
+
 /* ---- one-shot P -> C, C -> P, embeddings --------------------------------------------- */
 
 int sm_fmap_from_p2p(const sm_basis *x, const sm_basis *y, int k, const int32_t *T, double *C,
@@ -200,8 +211,8 @@ int sm_fmap_to_p2p(const sm_fmap_pair *pairs, int npairs, const double *const *C
     whiten(pairs[p].x, pairs[p].k, NULL, nx, s, EX + off, D);
     rc = embed_y_scaled(pairs[p].x, pairs[p].y, pairs[p].k, C[p], s, EY + off, D, err);
   }
-  if (!rc) rc = assign(EY, ny, EX, nx, D, NULL, ko, T, err);
-  if (!rc && T_yx) rc = assign(EX, nx, EY, ny, D, NULL, ko, T_yx, err);
+  if (!rc && T_yx) rc = assign_both(EY, ny, EX, nx, D, ko, T, T_yx, err);
+  else if (!rc) rc = assign(EY, ny, EX, nx, D, NULL, ko, T, err);
 done:
   free(EX);
   free(EY);
@@ -300,6 +311,7 @@ typedef struct zctx {
   int32_t *cand;       /* Y samples, or NULL = all */
   double *sqw;         /* nfit: sqrt of the fit weights */
   int32_t *Tfit;       /* current map on the fit set, global Y indices */
+  int32_t *T_yx;       /* wanted Y -> X map (filled with the last iteration), or NULL */
   double *EX, *EY, *Z;
   sm_zoomout_stats st;
 } zctx;
@@ -514,25 +526,21 @@ static int ziterate(zctx *z, int t, int32_t *T, sm_error *err) {
   int32_t nq = last || !z->fit ? z->nx : z->nfit;
   int32_t nc = full_c || !z->cand ? z->ny : z->ncand;
   int32_t *out = last ? T : z->Tfit;
-  rc = assign(z->EY, nc, z->EX, nq, D, full_c ? NULL : z->cand, &z->o->knn, out, err);
+  if (last && z->T_yx) /* the last iteration maps all of X to all of Y: both ways at once */
+    rc = assign_both(z->EY, nc, z->EX, nq, D, &z->o->knn, out, z->T_yx, err);
+  else
+    rc = assign(z->EY, nc, z->EX, nq, D, full_c ? NULL : z->cand, &z->o->knn, out, err);
   z->st.t_fmap += t1 - t0;
   z->st.t_embed += t2 - t1;
   z->st.t_knn += sm_now() - t2;
   return rc;
 }
 
-/* Optional outputs after the last iteration: C per pair, and the Y -> X assignment. */
-static int zfinish(zctx *z, double *const *C_out, int32_t *T_yx, sm_error *err) {
-  int D = 0;
-  for (int p = 0; p < z->np; p++) {
-    D += z->p[p].k;
+/* Optional output after the last iteration: C per pair (T_yx came with the last
+ * iteration's assignment). */
+static void zfinish(zctx *z, double *const *C_out) {
+  for (int p = 0; p < z->np; p++)
     if (C_out && C_out[p]) from_white(z->p[p].x, z->p[p].y, z->p[p].k, z->p[p].Cw, C_out[p]);
-  }
-  if (!T_yx) return 0;
-  double t0 = sm_now();
-  int rc = assign(z->EX, z->nx, z->EY, z->ny, D, NULL, &z->o->knn, T_yx, err);
-  z->st.t_knn += sm_now() - t0;
-  return rc;
 }
 
 int sm_zoomout(const sm_fmap_pair *pairs, int npairs, const sm_zoomout_opts *o,
@@ -549,6 +557,7 @@ int sm_zoomout(const sm_fmap_pair *pairs, int npairs, const sm_zoomout_opts *o,
   z.ny = pairs[0].y->n;
   z.niter = (pairs[0].k - pairs[0].k0 + o->step - 1) / o->step + 1;
   z.full_y_last = o->full_y_last > 0 ? o->full_y_last : 3;
+  z.T_yx = T_yx;
   rc = zsetup(&z, pairs, T0, err);
   for (int t = 0; t < z.niter && !rc; t++) {
     if (o->cancel && o->cancel(o->cancel_ud)) {
@@ -559,7 +568,7 @@ int sm_zoomout(const sm_fmap_pair *pairs, int npairs, const sm_zoomout_opts *o,
     rc = ziterate(&z, t, T, err);
     z.st.iterations = t + 1;
   }
-  if (!rc) rc = zfinish(&z, C_out, T_yx, err);
+  if (!rc) zfinish(&z, C_out);
   z.st.t_total = sm_now() - t_start;
   if (st) *st = z.st;
   zctx_free(&z);

@@ -39,8 +39,9 @@
  *   pair 0 truncated to its k0 columns. It starts from the vertex farthest from vertex 0;
  *   deterministic.
  *   Y -> X map (optional T_yx): the nearest X vertex of each Y vertex in the same final
- *   embedding space (same C): T_yx[j] = argmin_i |a_i - b_j|. One extra kNN query, not a
- *   second ZoomOut; it is the adjoint assignment of the same functional map.
+ *   embedding space (same C): T_yx[j] = argmin_i |a_i - b_j|. Not a second ZoomOut: the
+ *   adjoint assignment of the same functional map, found in the same pass over the
+ *   distances as the last iteration's assignment (sm_knn_query_both).
  *   C_out (optional) is the C whose point map is the returned T (the final iteration's).
  *
  * Contract

@@ -21,6 +21,10 @@
  *   distance, whose distances are then computed directly. Rows with more than RESCREEN_MAX
  *   such points, or too far from Y to screen in float, get a direct scan of all of Y;
  *   both keep the lowest index among equals.
+ *   Two-way query (sm_knn_query_both): each block of the product also feeds one list per
+ *   Y point, of full squared distances v_ij + |x_i|^2 (two more roundings, in the bound),
+ *   certified and finished the same way against the query rows. Saves the second GEMM
+ *   when ZoomOut wants T and T_yx, or Sinkhorn the K nearest in both directions.
  *   kd-tree: FLANN's exact single tree; distances are recomputed the same direct way so
  *   that both strategies agree bit for bit.
  *
@@ -265,171 +269,108 @@ static void sort_pairs(double *dv, int32_t *iv, int K) {
   }
 }
 
-/* Direct scan of every Y point for one query: the exact answer, lowest index among ties. */
-static void exact_row(const sm_knn *ix, const double *x, int K, double *dv, int32_t *iv) {
+/* Direct scan of the n points P (row-major, d wide) for query q: the exact K nearest,
+ * lowest index among ties. */
+static void exact_scan(const double *P, int32_t n, int d, const double *q, int K, double *dv,
+                       int32_t *iv) {
   int cnt = 0;
-  for (int32_t j = 0; j < ix->ny; j++) {
-    double s = sm_knn_dist2(x, ix->Y + (size_t)j * ix->d, ix->d);
+  for (int32_t j = 0; j < n; j++) {
+    double s = sm_knn_dist2(q, P + (size_t)j * d, d);
     if (cnt < K || s < dv[K - 1]) list_insert(dv, iv, &cnt, K, s, j);
+  }
+}
+
+/* Exact K nearest among the n candidate points cand (ascending indices into P) of query
+ * q, by (distance, index): the answer of exact_scan when cand holds every point within the
+ * K-th nearest distance. */
+static void exact_among(const double *P, int d, const double *q, const int32_t *cand, int n,
+                        int K, double *dv, int32_t *iv) {
+  int cnt = 0;
+  for (int c = 0; c < n; c++) {
+    double s = sm_knn_dist2(q, P + (size_t)cand[c] * d, d);
+    if (cnt < K || s < dv[K - 1]) list_insert(dv, iv, &cnt, K, s, cand[c]);
   }
 }
 
 /* ---- brute force -------------------------------------------------------------------- */
 
+/* Screening lists of one direction: cap smallest float values per query, ascending. */
+typedef struct screen_lists {
+  float *lv;   /* n x cap */
+  int32_t *li; /* n x cap */
+  int *cnt;    /* n */
+  float *thr;  /* n: lv[cap - 1] once full, else +inf (columns only: compared 4 at a time) */
+} screen_lists;
+
 typedef struct brute_ws {
-  float *Xc, *G, *lv;
-  double *xn, *dv;
-  int32_t *li, *iv;
-  int *cnt;
-  float *row; /* ny: one query's screening values, for rows the list did not certify */
+  float *Xc, *G;
+  double *xn;
+  screen_lists rows; /* BLK_X query rows */
+  screen_lists cols; /* two-way query: one list per Y point; lv == NULL otherwise */
+  double *dv;
+  int32_t *iv;
+  float *vec;        /* max(nx, ny) screening values of one query, for uncertified lists */
 } brute_ws;
+
+static void lists_free(screen_lists *l) {
+  free(l->lv);
+  free(l->li);
+  free(l->cnt);
+  free(l->thr);
+}
+
+static int lists_alloc(screen_lists *l, int32_t n, int cap) {
+  l->lv = malloc((size_t)n * cap * sizeof(float));
+  l->li = malloc((size_t)n * cap * sizeof(int32_t));
+  l->cnt = calloc((size_t)n, sizeof(int));
+  l->thr = malloc((size_t)n * sizeof(float));
+  if (!l->lv || !l->li || !l->cnt || !l->thr) return -1;
+  for (int32_t i = 0; i < n; i++) l->thr[i] = INFINITY;
+  return 0;
+}
 
 static void brute_ws_free(brute_ws *w) {
   free(w->Xc);
   free(w->G);
-  free(w->lv);
   free(w->xn);
+  lists_free(&w->rows);
+  lists_free(&w->cols);
   free(w->dv);
-  free(w->li);
   free(w->iv);
-  free(w->cnt);
-  free(w->row);
+  free(w->vec);
 }
 
-static int brute_ws_alloc(brute_ws *w, int d, int32_t ny, int cap) {
+/* Xc / xn: BLK_X rows, or all nx when two-way (the column rescreen needs every row). */
+static int brute_ws_alloc(brute_ws *w, int d, int32_t nx, int32_t ny, int cap, int capc,
+                          int two_way) {
   memset(w, 0, sizeof *w);
-  w->row = malloc((size_t)ny * sizeof(float));
-  w->Xc = malloc((size_t)BLK_X * (d + 1) * sizeof(float));
-  w->G = calloc((size_t)BLK_X * BLK_Y, sizeof(float)); /* kept zero between blocks */
-  w->lv = malloc((size_t)BLK_X * cap * sizeof(float));
-  w->xn = malloc(BLK_X * sizeof(double));
+  int32_t nr = two_way ? nx : BLK_X, nmax = nx > ny ? nx : ny;
   int nbuf = cap > RESCREEN_MAX ? cap : RESCREEN_MAX;
+  if (capc > nbuf) nbuf = capc;
+  w->Xc = malloc((size_t)nr * (d + 1) * sizeof(float));
+  w->xn = malloc((size_t)nr * sizeof(double));
+  w->G = calloc((size_t)BLK_X * BLK_Y, sizeof(float)); /* kept zero between blocks */
   w->dv = malloc((size_t)nbuf * sizeof(double));
-  w->li = malloc((size_t)BLK_X * cap * sizeof(int32_t));
   w->iv = malloc((size_t)nbuf * sizeof(int32_t));
-  w->cnt = malloc(BLK_X * sizeof(int));
-  return w->Xc && w->G && w->lv && w->xn && w->dv && w->li && w->iv && w->cnt && w->row
-             ? 0
-             : -1;
-}
-
-/* Not fminf: its NaN rules cost a call; there are no NaNs here (inputs are checked). */
-#define MIN2(a, b) ((a) < (b) ? (a) : (b))
-
-/* Scans one GEMM block: rows [0, bx) against Y rows [j0, j0 + by). Most entries are
- * above the row's threshold: test the minimum of 16 (SSE) or 8 at a time, and only walk a
- * group that holds a candidate. */
-static void brute_scan(brute_ws *w, int bx, int32_t j0, int by, int cap) {
-  for (int r = 0; r < bx; r++) {
-    const float *g = w->G + (size_t)r * by;
-    float *lv = w->lv + (size_t)r * cap;
-    int32_t *li = w->li + (size_t)r * cap;
-    int cnt = w->cnt[r];
-    float thr = cnt < cap ? INFINITY : lv[cap - 1];
-    int j = 0;
-#if defined(__SSE2__)
-    __m128 vt = _mm_set1_ps(thr);
-    for (; j + 16 <= by; j += 16) {
-      __m128 m = _mm_min_ps(_mm_min_ps(_mm_loadu_ps(g + j), _mm_loadu_ps(g + j + 4)),
-                            _mm_min_ps(_mm_loadu_ps(g + j + 8), _mm_loadu_ps(g + j + 12)));
-      if (!_mm_movemask_ps(_mm_cmplt_ps(m, vt))) continue;
-      for (int t = j; t < j + 16; t++)
-        if (g[t] < thr) {
-          list_insert_f(lv, li, &cnt, cap, g[t], j0 + t);
-          if (cnt == cap) thr = lv[cap - 1];
-        }
-      vt = _mm_set1_ps(thr);
-    }
-#endif
-    for (; j + 8 <= by; j += 8) {
-      float m01 = MIN2(g[j], g[j + 1]), m23 = MIN2(g[j + 2], g[j + 3]);
-      float m45 = MIN2(g[j + 4], g[j + 5]), m67 = MIN2(g[j + 6], g[j + 7]);
-      if (MIN2(MIN2(m01, m23), MIN2(m45, m67)) >= thr) continue;
-      for (int t = j; t < j + 8; t++)
-        if (g[t] < thr) {
-          list_insert_f(lv, li, &cnt, cap, g[t], j0 + t);
-          if (cnt == cap) thr = lv[cap - 1];
-        }
-    }
-    for (; j < by; j++)
-      if (g[j] < thr) {
-        list_insert_f(lv, li, &cnt, cap, g[j], j0 + j);
-        if (cnt == cap) thr = lv[cap - 1];
-      }
-    w->cnt[r] = cnt;
-    /* Zeroed while still in cache, so that the next GEMM can accumulate (beta = 1): with
-     * beta = 0 OpenBLAS clears C in a separate pass, which cost half as much as the GEMM
-     * itself at d = 20. */
-    memset(w->G + (size_t)r * by, 0, (size_t)by * sizeof(float));
-  }
-}
-
-/* Exact K nearest among n candidate points cand (ascending indices) of query x, by
- * (distance, index): the answer of exact_row when cand holds every point within the K-th
- * nearest distance. */
-static void exact_among(const sm_knn *ix, const double *x, const int32_t *cand, int n, int K,
-                        double *dv, int32_t *iv) {
-  int cnt = 0;
-  for (int c = 0; c < n; c++) {
-    double s = sm_knn_dist2(x, ix->Y + (size_t)cand[c] * ix->d, ix->d);
-    if (cnt < K || s < dv[K - 1]) list_insert(dv, iv, &cnt, K, s, cand[c]);
-  }
-}
-
-/* A row the list did not certify (near-ties, a dense cluster): its screening values
- * against all of Y again (sgemv), every point within lv_K + 2 delta of them kept (a
- * superset of the points within the K-th nearest distance, see DESIGN), then exact
- * distances on those. A direct scan when there are too many. */
-static void rescreen_row(const sm_knn *ix, brute_ws *w, const float *xc, const double *x,
-                         double thr, int K, double *dv, int32_t *iv) {
-  int d = ix->d, n = 0;
-  cblas_sgemv(CblasRowMajor, CblasNoTrans, ix->ny, d + 1, 1.0f, ix->Ya, d + 1, xc, 1, 0.0f,
-              w->row, 1);
-  for (int32_t j = 0; j < ix->ny; j++) {
-    if (w->row[j] > thr) continue;
-    if (n == RESCREEN_MAX) {
-      exact_row(ix, x, K, dv, iv);
-      return;
-    }
-    w->iv[n++] = j;
-  }
-  exact_among(ix, x, w->iv, n, K, dv, iv);
-}
-
-/* Turns the screened list of query row x (xn = |s (x - center)|^2, infinite when the row
- * was not screened; xc its float row) into the exact K nearest; see DESIGN. */
-static void brute_finish_row(const sm_knn *ix, brute_ws *w, const float *xc, const double *x,
-                             double xn, const float *lv, const int32_t *li, int K, int cap,
-                             double *dv, int32_t *iv) {
-  const double u = 5.9604644775390625e-08; /* 2^-24 */
-  double delta = 4.0 * (ix->d + 4) * u * (xn + ix->ymax2);
-  if (!isfinite(delta)) {
-    exact_row(ix, x, K, dv, iv);
-    return;
-  }
-  if (cap < ix->ny && (double)lv[cap - 1] - (double)lv[K - 1] <= 2 * delta) {
-    rescreen_row(ix, w, xc, x, (double)lv[K - 1] + 2 * delta, K, dv, iv);
-    return;
-  }
-  for (int r = 0; r < cap; r++) {
-    w->iv[r] = li[r];
-    w->dv[r] = sm_knn_dist2(x, ix->Y + (size_t)li[r] * ix->d, ix->d);
-  }
-  sort_pairs(w->dv, w->iv, cap);
-  memcpy(dv, w->dv, (size_t)K * sizeof *dv);
-  memcpy(iv, w->iv, (size_t)K * sizeof *iv);
+  w->vec = malloc((size_t)nmax * sizeof(float));
+  if (!w->Xc || !w->xn || !w->G || !w->dv || !w->iv || !w->vec) return -1;
+  if (lists_alloc(&w->rows, BLK_X, cap)) return -1;
+  return two_way ? lists_alloc(&w->cols, ny, capc) : 0;
 }
 
 /* Largest |s (x - center)|^2 screened in float: beyond it the row is scanned directly
  * (its float products could overflow, and its delta would fail the test anyway). */
 #define SCREEN_MAX_XN 1e24
 
-static void brute_block(const sm_knn *ix, brute_ws *w, const double *X, int bx, int K,
-                        int cap, int32_t *idx, double *dist2) {
+/* Float rows [s (x_r - center), 1] (stride d + 1) and xn_r = |s (x_r - center)|^2, or
+ * INFINITY (and a zero row) when the row is not screenable. Returns how many are not. */
+static int32_t screen_rows(const sm_knn *ix, const double *X, int32_t n, float *Xc,
+                           double *xn) {
   int d = ix->d;
-  for (int r = 0; r < bx; r++) {
+  int32_t bad = 0;
+  for (int32_t r = 0; r < n; r++) {
     double s = 0;
-    float *xc = w->Xc + (size_t)r * (d + 1);
+    float *xc = Xc + (size_t)r * (d + 1);
     for (int t = 0; t < d; t++) {
       double c = ix->scale * (X[(size_t)r * d + t] - ix->center[t]);
       s += c * c;
@@ -438,20 +379,169 @@ static void brute_block(const sm_knn *ix, brute_ws *w, const double *X, int bx, 
     for (int t = 0; t < d; t++)
       xc[t] = ok ? (float)(ix->scale * (X[(size_t)r * d + t] - ix->center[t])) : 0.0f;
     xc[d] = 1; /* picks up |y|^2 from the last column of Ya */
-    w->xn[r] = ok ? s : INFINITY;
-    w->cnt[r] = 0;
+    xn[r] = ok ? s : INFINITY;
+    bad += !ok;
+  }
+  return bad;
+}
+
+/* Not fminf: its NaN rules cost a call; there are no NaNs here (inputs are checked). */
+#define MIN2(a, b) ((a) < (b) ? (a) : (b))
+
+static inline void offer(screen_lists *l, int cap, size_t q, float v, int32_t j) {
+  int cnt = l->cnt[q];
+  list_insert_f(l->lv + q * cap, l->li + q * cap, &cnt, cap, v, j);
+  l->cnt[q] = cnt;
+  if (cnt == cap) l->thr[q] = l->lv[q * cap + cap - 1];
+}
+
+/* One row of a GEMM block into its own list: most entries are above the row's threshold,
+ * so test the minimum of 16 (SSE) or 8 at a time and only walk a group that holds a
+ * candidate. */
+static void scan_row(screen_lists *l, int cap, int r, const float *g, int32_t j0, int by) {
+  int j = 0;
+  float thr = l->thr[r];
+#if defined(__SSE2__)
+  __m128 vt = _mm_set1_ps(thr);
+  for (; j + 16 <= by; j += 16) {
+    __m128 m = _mm_min_ps(_mm_min_ps(_mm_loadu_ps(g + j), _mm_loadu_ps(g + j + 4)),
+                          _mm_min_ps(_mm_loadu_ps(g + j + 8), _mm_loadu_ps(g + j + 12)));
+    if (!_mm_movemask_ps(_mm_cmplt_ps(m, vt))) continue;
+    for (int t = j; t < j + 16; t++)
+      if (g[t] < thr) {
+        offer(l, cap, r, g[t], j0 + t);
+        thr = l->thr[r];
+      }
+    vt = _mm_set1_ps(thr);
+  }
+#endif
+  for (; j + 8 <= by; j += 8) {
+    float m01 = MIN2(g[j], g[j + 1]), m23 = MIN2(g[j + 2], g[j + 3]);
+    float m45 = MIN2(g[j + 4], g[j + 5]), m67 = MIN2(g[j + 6], g[j + 7]);
+    if (MIN2(MIN2(m01, m23), MIN2(m45, m67)) >= thr) continue;
+    for (int t = j; t < j + 8; t++)
+      if (g[t] < thr) {
+        offer(l, cap, r, g[t], j0 + t);
+        thr = l->thr[r];
+      }
+  }
+  for (; j < by; j++)
+    if (g[j] < thr) {
+      offer(l, cap, r, g[j], j0 + j);
+      thr = l->thr[r];
+    }
+}
+
+/* The same row into the lists of the Y points j0 .. j0 + by - 1 (two-way query), as full
+ * squared distances g + xn (the column's own constant differs per row). */
+static void scan_cols(screen_lists *l, int cap, int32_t i, float xr, const float *g,
+                      int32_t j0, int by) {
+  const float *thr = l->thr + j0;
+  int j = 0;
+#if defined(__SSE2__)
+  __m128 vx = _mm_set1_ps(xr);
+  for (; j + 4 <= by; j += 4) {
+    __m128 v = _mm_add_ps(_mm_loadu_ps(g + j), vx);
+    if (!_mm_movemask_ps(_mm_cmplt_ps(v, _mm_loadu_ps(thr + j)))) continue;
+    for (int t = j; t < j + 4; t++) {
+      float vt = g[t] + xr;
+      if (vt < thr[t]) offer(l, cap, (size_t)j0 + t, vt, i);
+    }
+  }
+#endif
+  for (; j < by; j++) {
+    float vt = g[j] + xr;
+    if (vt < thr[j]) offer(l, cap, (size_t)j0 + j, vt, i);
+  }
+}
+
+/* Scans one GEMM block (rows i0 .. i0 + bx - 1 of the query, Y points j0 .. j0 + by - 1),
+ * zeroing each row while it is in cache so that the next GEMM can accumulate (beta = 1):
+ * with beta = 0 OpenBLAS clears C in a separate pass, which cost half as much as the GEMM
+ * itself at d = 20. */
+static void scan_block(brute_ws *w, const double *xn, int bx, int32_t i0, int32_t j0, int by,
+                       int cap, int capc) {
+  for (int r = 0; r < bx; r++) {
+    float *g = w->G + (size_t)r * by;
+    scan_row(&w->rows, cap, r, g, j0, by);
+    if (w->cols.lv) scan_cols(&w->cols, capc, i0 + r, (float)xn[r], g, j0, by);
+    memset(g, 0, (size_t)by * sizeof(float));
+  }
+}
+
+/* Exact K nearest of query q among the n points P from its screening list (lv, li: cap
+ * smallest screening values; delta: their rounding bound; see DESIGN). Uncertified: the
+ * screening values of q against all of P, vec (computed by fill(ctx) on demand), and every
+ * point within lv_K + 2 delta of them; a direct scan beyond RESCREEN_MAX of those. */
+typedef void (*fill_fn)(const void *ctx, float *vec);
+
+static void finish_list(brute_ws *w, const double *P, int32_t n, int d, const double *q,
+                        const float *lv, const int32_t *li, int K, int cap, double delta,
+                        fill_fn fill, const void *ctx, double *dv, int32_t *iv) {
+  if (!isfinite(delta)) {
+    exact_scan(P, n, d, q, K, dv, iv);
+    return;
+  }
+  if (cap < n && (double)lv[cap - 1] - (double)lv[K - 1] <= 2 * delta) {
+    double thr = (double)lv[K - 1] + 2 * delta;
+    int m = 0;
+    fill(ctx, w->vec);
+    for (int32_t j = 0; j < n; j++) {
+      if (w->vec[j] > thr) continue;
+      if (m == RESCREEN_MAX) {
+        exact_scan(P, n, d, q, K, dv, iv);
+        return;
+      }
+      w->iv[m++] = j;
+    }
+    exact_among(P, d, q, w->iv, m, K, dv, iv);
+    return;
+  }
+  for (int r = 0; r < cap; r++) {
+    w->iv[r] = li[r];
+    w->dv[r] = sm_knn_dist2(q, P + (size_t)li[r] * d, d);
+  }
+  sort_pairs(w->dv, w->iv, cap);
+  memcpy(dv, w->dv, (size_t)K * sizeof *dv);
+  memcpy(iv, w->iv, (size_t)K * sizeof *iv);
+}
+
+/* Rounding bound of a screening value (DESIGN): u = 2^-24. */
+static double screen_delta(int d, double xn, double ymax2) {
+  return 4.0 * (d + 4) * 5.9604644775390625e-08 * (xn + ymax2);
+}
+
+typedef struct row_fill { const sm_knn *ix; const float *xc; } row_fill;
+
+/* Screening values of one query row against all of Y (sgemv). */
+static void fill_row(const void *vctx, float *vec) {
+  const row_fill *c = vctx;
+  cblas_sgemv(CblasRowMajor, CblasNoTrans, c->ix->ny, c->ix->d + 1, 1.0f, c->ix->Ya,
+              c->ix->d + 1, c->xc, 1, 0.0f, vec, 1);
+}
+
+/* Rows i0 .. i0 + bx - 1 of the query (their float rows Xc and constants xn) against all
+ * of Y: GEMM blocks, scans, then the exact K nearest of each row. */
+static void brute_rows(const sm_knn *ix, brute_ws *w, const float *Xc, const double *xn,
+                       const double *X, int32_t i0, int bx, int K, int cap, int capc,
+                       int32_t *idx, double *dist2) {
+  int d = ix->d;
+  for (int r = 0; r < bx; r++) {
+    w->rows.cnt[r] = 0;
+    w->rows.thr[r] = INFINITY;
   }
   for (int32_t j0 = 0; j0 < ix->ny; j0 += BLK_Y) {
     int by = ix->ny - j0 < BLK_Y ? ix->ny - j0 : BLK_Y;
-    cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasTrans, bx, by, d + 1, 1.0f, w->Xc, d + 1,
+    cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasTrans, bx, by, d + 1, 1.0f, Xc, d + 1,
                 ix->Ya + (size_t)j0 * (d + 1), d + 1, 1.0f, w->G, by);
-    brute_scan(w, bx, j0, by, cap);
+    scan_block(w, xn, bx, i0, j0, by, cap, capc);
   }
-  for (int r = 0; r < bx; r++)
-    brute_finish_row(ix, w, w->Xc + (size_t)r * (d + 1), X + (size_t)r * d, w->xn[r],
-                     w->lv + (size_t)r * cap,
-                     w->li + (size_t)r * cap, K, cap, dist2 + (size_t)r * K,
-                     idx + (size_t)r * K);
+  for (int r = 0; r < bx; r++) {
+    row_fill c = {ix, Xc + (size_t)r * (d + 1)};
+    finish_list(w, ix->Y, ix->ny, d, X + (size_t)(i0 + r) * d, w->rows.lv + (size_t)r * cap,
+                w->rows.li + (size_t)r * cap, K, cap, screen_delta(d, xn[r], ix->ymax2),
+                fill_row, &c, dist2 + (size_t)(i0 + r) * K, idx + (size_t)(i0 + r) * K);
+  }
 }
 
 static int query_brute(const sm_knn *ix, const double *X, int32_t nx, int K, int32_t *idx,
@@ -459,14 +549,66 @@ static int query_brute(const sm_knn *ix, const double *X, int32_t nx, int K, int
   /* The (K + SCREEN_EXTRA)-th candidate certifies the K-th. */
   int cap = K + SCREEN_EXTRA < ix->ny ? K + SCREEN_EXTRA : ix->ny;
   brute_ws w;
-  if (brute_ws_alloc(&w, ix->d, ix->ny, cap)) {
+  if (brute_ws_alloc(&w, ix->d, nx, ix->ny, cap, 0, 0)) {
     brute_ws_free(&w);
     return sm_error_set(err, SM_ENOMEM, "knn: brute-force workspace (K=%d, d=%d)", K, ix->d);
   }
   for (int32_t i0 = 0; i0 < nx; i0 += BLK_X) {
     int bx = nx - i0 < BLK_X ? nx - i0 : BLK_X;
-    brute_block(ix, &w, X + (size_t)i0 * ix->d, bx, K, cap, idx + (size_t)i0 * K,
-                dist2 + (size_t)i0 * K);
+    screen_rows(ix, X + (size_t)i0 * ix->d, bx, w.Xc, w.xn);
+    brute_rows(ix, &w, w.Xc, w.xn, X, i0, bx, K, cap, 0, idx, dist2);
+  }
+  brute_ws_free(&w);
+  return 0;
+}
+
+typedef struct col_fill {
+  const sm_knn *ix;
+  const float *Xc;
+  const double *xn;
+  int32_t nx, j;
+} col_fill;
+
+/* Screening values (full squared distances) of Y point j against every query row. */
+static void fill_col(const void *vctx, float *vec) {
+  const col_fill *c = vctx;
+  int d = c->ix->d;
+  cblas_sgemv(CblasRowMajor, CblasNoTrans, c->nx, d + 1, 1.0f, c->Xc, d + 1,
+              c->ix->Ya + (size_t)c->j * (d + 1), 1, 0.0f, vec, 1);
+  for (int32_t i = 0; i < c->nx; i++) vec[i] += (float)c->xn[i];
+}
+
+/* Both directions from one pass; 1 (nothing written) when some query row cannot be
+ * screened in float (the caller then runs two plain queries). */
+static int query_both_brute(const sm_knn *ix, const double *X, int32_t nx, int K,
+                            int32_t *idx, double *dist2, int32_t *idx_yx, double *dist_yx,
+                            sm_error *err) {
+  int d = ix->d;
+  int cap = K + SCREEN_EXTRA < ix->ny ? K + SCREEN_EXTRA : ix->ny;
+  int capc = K + SCREEN_EXTRA < nx ? K + SCREEN_EXTRA : nx;
+  brute_ws w;
+  if (brute_ws_alloc(&w, d, nx, ix->ny, cap, capc, 1)) {
+    brute_ws_free(&w);
+    return sm_error_set(err, SM_ENOMEM, "knn: two-way workspace (K=%d, d=%d)", K, d);
+  }
+  if (screen_rows(ix, X, nx, w.Xc, w.xn)) {
+    brute_ws_free(&w);
+    return 1;
+  }
+  double xmax2 = 0;
+  for (int32_t i = 0; i < nx; i++) xmax2 = w.xn[i] > xmax2 ? w.xn[i] : xmax2;
+  for (int32_t i0 = 0; i0 < nx; i0 += BLK_X) {
+    int bx = nx - i0 < BLK_X ? nx - i0 : BLK_X;
+    brute_rows(ix, &w, w.Xc + (size_t)i0 * (d + 1), w.xn + i0, X, i0, bx, K, cap, capc, idx,
+               dist2);
+  }
+  /* A column value also rounds xn to float and adds: two more units in the bound. */
+  double delta = screen_delta(d + 2, xmax2, ix->ymax2);
+  for (int32_t j = 0; j < ix->ny; j++) {
+    col_fill c = {ix, w.Xc, w.xn, nx, j};
+    finish_list(&w, X, nx, d, ix->Y + (size_t)j * d, w.cols.lv + (size_t)j * capc,
+                w.cols.li + (size_t)j * capc, K, capc, delta, fill_col, &c,
+                dist_yx + (size_t)j * K, idx_yx + (size_t)j * K);
   }
   brute_ws_free(&w);
   return 0;
@@ -499,6 +641,41 @@ static int query_flann(const sm_knn *ix, const double *X, int32_t nx, int K, int
   return 0;
 }
 
+static int query_any(const sm_knn *ix, const double *X, int32_t nx, int K, int32_t *idx,
+                     double *dist2, sm_error *err) {
+  return ix->strategy == SM_KNN_BRUTE ? query_brute(ix, X, nx, K, idx, dist2, err)
+                                      : query_flann(ix, X, nx, K, idx, dist2, err);
+}
+
+int sm_knn_query_both(const sm_knn *ix, const double *X, int32_t nx, int K, int32_t *idx,
+                      double *dist2, int32_t *idx_yx, double *dist_yx, sm_error *err) {
+  if (!ix || !X || nx < 1 || !idx || !idx_yx)
+    return sm_error_set(err, SM_EINVAL, "knn: bad two-way query arguments");
+  if (K < 1 || K > ix->ny || K > nx)
+    return sm_error_set(err, SM_EINVAL, "knn: K=%d outside [1, min(%d, %d)]", K, nx, ix->ny);
+  int rc = check_finite(X, (int64_t)nx * ix->d, "query", err);
+  if (rc) return rc;
+  double *own = malloc(((size_t)nx + ix->ny) * K * sizeof(double));
+  if (!own) return sm_error_set(err, SM_ENOMEM, "knn: %d + %d x %d distances", nx, ix->ny, K);
+  if (!dist2) dist2 = own;
+  if (!dist_yx) dist_yx = own + (size_t)nx * K;
+  rc = ix->strategy == SM_KNN_BRUTE
+           ? query_both_brute(ix, X, nx, K, idx, dist2, idx_yx, dist_yx, err)
+           : 1;
+  if (rc == 1) { /* kd-tree, or rows too far to screen: two plain queries */
+    sm_knn_opts o;
+    sm_knn_opts_default(&o);
+    o.strategy = ix->strategy;
+    sm_knn *ixx = NULL;
+    rc = query_any(ix, X, nx, K, idx, dist2, err);
+    if (!rc) rc = sm_knn_build(X, nx, ix->d, &o, &ixx, err);
+    if (!rc) rc = query_any(ixx, ix->Y, ix->ny, K, idx_yx, dist_yx, err);
+    sm_knn_destroy(ixx);
+  }
+  free(own);
+  return rc;
+}
+
 int sm_knn_query(const sm_knn *ix, const double *X, int32_t nx, int K, int32_t *idx,
                  double *dist2, sm_error *err) {
   if (!ix || (!X && nx > 0) || nx < 0 || !idx)
@@ -514,8 +691,7 @@ int sm_knn_query(const sm_knn *ix, const double *X, int32_t nx, int K, int32_t *
     if (!own) return sm_error_set(err, SM_ENOMEM, "knn: %d x %d distances", nx, K);
     dist2 = own;
   }
-  rc = ix->strategy == SM_KNN_BRUTE ? query_brute(ix, X, nx, K, idx, dist2, err)
-                                    : query_flann(ix, X, nx, K, idx, dist2, err);
+  rc = query_any(ix, X, nx, K, idx, dist2, err);
   free(own);
   return rc;
 }

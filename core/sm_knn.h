@@ -59,6 +59,15 @@ int sm_knn_build(const double *Y, int32_t ny, int d, const sm_knn_opts *o, sm_kn
                  sm_error *err);
 int sm_knn_query(const sm_knn *ix, const double *X, int32_t nx, int K, int32_t *idx,
                  double *dist2, sm_error *err);
+/* Both directions at once: idx / dist2 (nx x K) as sm_knn_query(ix, X, ...), and idx_yx /
+ * dist_yx (ny x K: the K nearest query rows of every point of the index) as a query of
+ * the index's points against an index of X with the same strategy would give. With a
+ * brute-force index the two come from one pass over the distance matrix (one GEMM
+ * instead of two) and both follow the brute-force rule (lowest index among ties);
+ * otherwise, or when a query row is too far out to screen in float, two queries.
+ * K <= min(nx, ny); dist2 and dist_yx may be NULL. */
+int sm_knn_query_both(const sm_knn *ix, const double *X, int32_t nx, int K, int32_t *idx,
+                      double *dist2, int32_t *idx_yx, double *dist_yx, sm_error *err);
 void sm_knn_destroy(sm_knn *ix);
 
 /* The strategy the index uses (SM_KNN_KDTREE or SM_KNN_BRUTE). */

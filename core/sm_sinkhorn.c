@@ -139,7 +139,8 @@ static void *knn_job_run(void *arg) {
 }
 
 /* K nearest g's of every f_i and K nearest f's of every g_j, by sm_knn (exact either
- * way, so the support does not depend on the strategy). With threads >= 2 and brute
+ * way, so the support does not depend on the strategy). Brute force with the same K both
+ * ways: one two-way pass (sm_knn_query_both). Otherwise, with threads >= 2 and brute
  * force, the two directions run concurrently (two independent indexes: allowed by
  * sm_knn; the kd-tree search is serialized inside sm_knn and uses the threads itself). */
 static int add_knn_pairs(const double *F, int32_t nx, const double *G, int32_t ny, int32_t d,
@@ -156,8 +157,13 @@ static int add_knn_pairs(const double *F, int32_t nx, const double *G, int32_t n
   sm_knn *ig = NULL, *jf = NULL;
   int rc = ri && ci && rd && cd ? 0 : SM_ENOMEM;
   if (!rc) rc = sm_knn_build(G, ny, d, &ko, &ig, err);
-  if (!rc) rc = sm_knn_build(F, nx, d, &ko, &jf, err);
-  if (!rc) {
+  /* Brute force: both directions from one pass over the distances (one GEMM, not two;
+   * cheaper in CPU than the two directions on two threads, which a busy server cannot
+   * spare anyway). */
+  int both = !rc && kx == ky && sm_knn_strategy_of(ig) == SM_KNN_BRUTE;
+  if (both) rc = sm_knn_query_both(ig, F, nx, kx, ri, rd, ci, cd, err);
+  if (!rc && !both) rc = sm_knn_build(F, nx, d, &ko, &jf, err);
+  if (!rc && !both) {
     sk_knn_job jr = {ig, F, nx, kx, ri, rd, {0}, 0}, jc = {jf, G, ny, ky, ci, cd, {0}, 0};
     pthread_t th;
     int par = o->threads >= 2 && sm_knn_strategy_of(ig) == SM_KNN_BRUTE &&

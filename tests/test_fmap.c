@@ -80,6 +80,34 @@ static int run_knn(const double *Y, int ny, const double *X, int nx, int d, int 
   return bad;
 }
 
+/* sm_knn_query_both against the naive search both ways: rows of X among Y, and points of
+ * Y among the rows of X. */
+static int run_knn_both(const double *Y, int ny, const double *X, int nx, int d, int K,
+                        int strat, int exact_idx) {
+  sm_knn_opts o;
+  sm_knn_opts_default(&o);
+  o.strategy = strat;
+  sm_knn *ix = NULL;
+  sm_error err;
+  int32_t *idx = malloc((size_t)nx * K * sizeof *idx), *iyx = malloc((size_t)ny * K * sizeof *iyx);
+  double *dist = malloc((size_t)nx * K * sizeof *dist), *dyx = malloc((size_t)ny * K * sizeof *dyx);
+  int rc = sm_knn_build(Y, ny, d, &o, &ix, &err);
+  if (!rc) rc = sm_knn_query_both(ix, X, nx, K, idx, dist, iyx, dyx, &err);
+  if (rc) fprintf(stderr, "knn both: %s\n", err.msg);
+  REQUIRE(rc == 0);
+  int bad = compare_knn(Y, ny, X, nx, d, K, idx, dist, exact_idx);
+  int bad_yx = compare_knn(X, nx, Y, ny, d, K, iyx, dyx, exact_idx);
+  CHECK_MSG(bad == 0 && bad_yx == 0,
+            "two-way strategy %d d=%d K=%d nx=%d ny=%d: %d + %d rows differ", strat, d, K, nx,
+            ny, bad, bad_yx);
+  sm_knn_destroy(ix);
+  free(idx);
+  free(iyx);
+  free(dist);
+  free(dyx);
+  return bad + bad_yx;
+}
+
 static double *random_points(int n, int d, double lo, double hi, uint64_t *s) {
   double *P = malloc((size_t)n * d * sizeof *P);
   for (int64_t i = 0; i < (int64_t)n * d; i++) P[i] = lo + (hi - lo) * tm_rand(s);
@@ -96,6 +124,10 @@ static void test_knn_random(void) {
       double *Y = random_points(ny, d, -1, 1, &s), *X = random_points(nx, d, -1, 1, &s);
       run_knn(Y, ny, X, nx, d, K, SM_KNN_BRUTE, 1);
       run_knn(Y, ny, X, nx, d, K, SM_KNN_KDTREE, 1);
+      if (a % 2 == 0) {
+        run_knn_both(Y, ny, X, nx, d, K, SM_KNN_BRUTE, 1);
+        run_knn_both(Y, ny, X, nx, d, K, SM_KNN_KDTREE, 1);
+      }
       free(Y);
       free(X);
     }
@@ -116,6 +148,7 @@ static void test_knn_ties(void) {
     for (int K = 1; K <= 9; K += 4) {
       run_knn(Y, ny, X, nx, d, K, SM_KNN_BRUTE, 1);   /* lowest index among equals */
       run_knn(Y, ny, X, nx, d, K, SM_KNN_KDTREE, 0);  /* same distances, any tied index */
+      run_knn_both(Y, ny, X, nx, d, K, SM_KNN_BRUTE, 1);
     }
     run_knn(Y, 7, X, nx, d, 7, SM_KNN_BRUTE, 1); /* K = ny */
     run_knn(Y, 7, X, nx, d, 7, SM_KNN_KDTREE, 0);
@@ -134,6 +167,7 @@ static void test_knn_cancellation(void) {
   for (int i = 0; i < nx; i++) X[(size_t)i * d] += i % 2 ? 1e6 : -1e6;
   run_knn(Y, ny, X, nx, d, 3, SM_KNN_BRUTE, 1);
   run_knn(Y, ny, X, nx, d, 3, SM_KNN_KDTREE, 1);
+  run_knn_both(Y, ny, X, nx, d, 3, SM_KNN_BRUTE, 1);
   free(Y);
   free(X);
 }
@@ -152,7 +186,11 @@ static void test_knn_scales(void) {
       double far = i % 3 == 0 ? 1e20 : i % 3 == 1 ? 1e3 : 1; /* outside, near, inside */
       for (int t = 0; t < d; t++) X[(size_t)i * d + t] *= far * scales[a];
     }
-    for (int K = 1; K <= 17; K += 8) run_knn(Y, ny, X, nx, d, K, SM_KNN_BRUTE, 1);
+    for (int K = 1; K <= 17; K += 8) {
+      run_knn(Y, ny, X, nx, d, K, SM_KNN_BRUTE, 1);
+      run_knn_both(Y, ny, X, nx, d, K, SM_KNN_BRUTE, 1); /* far rows: two queries */
+      run_knn_both(Y, ny, X + (size_t)2 * d, 40, d, K, SM_KNN_BRUTE, 1); /* rows 2, 5, ...: inside */
+    }
     free(Y);
     free(X);
   }
