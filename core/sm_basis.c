@@ -33,14 +33,36 @@ void sm_basis_opts_default(sm_basis_opts *o, int kind, int k) {
   o->lambda = 1.0;
 }
 
-static double trace_ratio(const sm_csc *A, const double *D) {
+static int cmp_double(const void *a, const void *b) {
+  double x = *(const double *)a, y = *(const double *)b;
+  return (x > y) - (x < y);
+}
+
+/* The scale of the shift: tr(A)/tr(D), but at most SM_SHIFT_SPREAD times the median of
+ * A_jj / D_j. The trace is a sum and one pathological element dominates it (a sliver made
+ * centaur3's 7e7 times its median, putting the shift 1e7 below the wanted eigenvalues and
+ * stalling Lanczos); on the TOSCA 5k shapes without one the ratio is 2-112, so the cap
+ * leaves their shift, hence their results, unchanged. SM_ENOMEM falls back to the trace. */
+#define SM_SHIFT_SPREAD 1000.0
+static double shift_scale(const sm_csc *A, const double *D) {
   double ta = 0, td = 0;
+  double *r = malloc((size_t)(A->n > 0 ? A->n : 1) * sizeof *r);
   for (int32_t j = 0; j < A->n; j++) {
     td += D[j];
+    double ajj = 0;
     for (int32_t p = A->colptr[j]; p < A->colptr[j + 1]; p++)
-      if (A->rowind[p] == j) ta += A->val[p];
+      if (A->rowind[p] == j) ajj += A->val[p];
+    ta += ajj;
+    if (r) r[j] = ajj / D[j];
   }
-  return ta / td;
+  double scale = ta / td;
+  if (r && A->n > 0) {
+    qsort(r, (size_t)A->n, sizeof *r, cmp_double);
+    double med = r[A->n / 2];
+    if (med > 0 && scale > SM_SHIFT_SPREAD * med) scale = SM_SHIFT_SPREAD * med;
+  }
+  free(r);
+  return scale;
 }
 
 /* Number of kernel modes at the front of the ascending spectrum ev[0..nev): the position of
@@ -83,7 +105,7 @@ static sm_basis *basis_new(const sm_mesh *m, const sm_basis_opts *o) {
 
 static int eigs(const sm_csc *A, const double *D, int nev, const sm_basis_opts *o,
                 double *evals, double *evecs, sm_basis_timing *tm, sm_error *err) {
-  sm_eigs_opts eo = {.nev = nev, .sigma = -SM_SHIFT_REL * trace_ratio(A, D), .tol = 1e-9,
+  sm_eigs_opts eo = {.nev = nev, .sigma = -SM_SHIFT_REL * shift_scale(A, D), .tol = 1e-9,
                      .cancel = o->cancel, .cancel_ud = o->cancel_ud};
   sm_eigs_stats st;
   int rc = sm_eigs_smallest(A, D, &eo, evals, evecs, &st, err);
@@ -120,6 +142,142 @@ static int assemble_hessian(const sm_mesh *m, const sm_basis_opts *o, sm_csc **H
   sm_triplets_free(&t);
   sm_edges_destroy(e);
   return rc;
+}
+
+/* Sliver caps. A face whose corners are nearly collinear ("cap": one angle close to 180
+ * degrees) is a meshing artifact, but the shell treats it as real: its membrane terms
+ * scale like |e|^2 / A and its bending terms like |e|^4 / A^3 (the dihedral gradient is
+ * |e| / 2A). centaur3 of the TOSCA 5k set has one cap of area 2.7e-10 (mean 1e-4,
+ * min angle 4e-5 degrees): its Hessian entries reach 1e17 times the mass where the wanted
+ * eigenvalues are O(1), so (a) tr(H)/tr(M), the scale of the shift, grows from ~1e6 to
+ * 4e13, putting sigma 1e7 below the wanted eigenvalues, where shift-invert cannot tell
+ * them apart (the Lanczos run never converged), and (b) rounding in that one element
+ * (eps * 1e17) swamps the rigid kernel (kernel "eigenvalues" of 4e-2 against 0.7 for the
+ * first elastic mode: no detectable gap) and the low modes.
+ * Remedy, for the Hessian only: flip the cap's longest edge, which splits the neighbouring
+ * face at the cap's apex. Same vertices, same surface (the cap has no area), so the basis
+ * still lives on the caller's mesh; mass and normals come from the mesh as given. A flip is
+ * done only when the edge is a consistently oriented hinge, the new edge does not exist
+ * yet, both new faces keep the neighbour's orientation and the worst quality improves.
+ * Caps that cannot be flipped are left alone (the shift below no longer depends on them;
+ * the kernel check reports what rounding did). Quality = lmax^2 / A: 2.3 equilateral,
+ * under 300 on every TOSCA 5k shape but that one (5.8e6); 1e4 = a height 2e-4 of the
+ * longest edge, where the element's stiffness is ~1e7 times that of a regular face. */
+#define SM_SLIVER_QUALITY 1e4
+
+static double tri_quality(const double *V, int32_t a, int32_t b, int32_t c, double *nrm) {
+  const double *p = V + 3 * (int64_t)a, *q = V + 3 * (int64_t)b, *r = V + 3 * (int64_t)c;
+  double u[3], v[3], w[3], n[3];
+  for (int d = 0; d < 3; d++) {
+    u[d] = q[d] - p[d];
+    v[d] = r[d] - p[d];
+    w[d] = r[d] - q[d];
+  }
+  n[0] = u[1] * v[2] - u[2] * v[1];
+  n[1] = u[2] * v[0] - u[0] * v[2];
+  n[2] = u[0] * v[1] - u[1] * v[0];
+  if (nrm) memcpy(nrm, n, sizeof n);
+  double l2 = fmax(u[0] * u[0] + u[1] * u[1] + u[2] * u[2],
+                   fmax(v[0] * v[0] + v[1] * v[1] + v[2] * v[2],
+                        w[0] * w[0] + w[1] * w[1] + w[2] * w[2]));
+  double area = 0.5 * sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+  return area > 0 ? l2 / area : HUGE_VAL;
+}
+
+static int edge_exists(const sm_edges *e, const int32_t *added, int nadded, int32_t a,
+                       int32_t b) {
+  if (a > b) {
+    int32_t t = a;
+    a = b;
+    b = t;
+  }
+  for (int i = 0; i < nadded; i++)
+    if (added[2 * i] == a && added[2 * i + 1] == b) return 1;
+  int32_t lo = 0, hi = e->ne; /* e->ev is sorted by (first, second) */
+  while (lo < hi) {
+    int32_t mid = lo + (hi - lo) / 2;
+    const int32_t *x = e->ev + 2 * (int64_t)mid;
+    if (x[0] < a || (x[0] == a && x[1] < b)) lo = mid + 1;
+    else hi = mid;
+  }
+  return lo < e->ne && e->ev[2 * (int64_t)lo] == a && e->ev[2 * (int64_t)lo + 1] == b;
+}
+
+/* *out = a copy of m with its sliver caps flipped away, or NULL when there is none. */
+static int flip_slivers(const sm_mesh *m, sm_mesh **out, int *nflipped, sm_error *err) {
+  *out = NULL;
+  *nflipped = 0;
+  int32_t nsliver = 0;
+  for (int32_t f = 0; f < m->nf; f++)
+    if (tri_quality(m->V, m->F[3 * f], m->F[3 * f + 1], m->F[3 * f + 2], NULL) >
+        SM_SLIVER_QUALITY)
+      nsliver++;
+  if (!nsliver) return SM_OK;
+  sm_mesh *c = NULL;
+  sm_edges *e = NULL;
+  uint8_t *touched = calloc((size_t)m->nf, 1);
+  int32_t *added = malloc((size_t)2 * nsliver * sizeof *added);
+  int rc = (!touched || !added) ? sm_error_set(err, SM_ENOMEM, "sliver repair: out of memory")
+                                : SM_OK;
+  if (!rc) rc = sm_mesh_copy(m, &c, err);
+  if (!rc) rc = sm_edges_build(m, &e, err);
+  const double *V = m->V;
+  for (int32_t f = 0; !rc && f < m->nf; f++) {
+    const int32_t *F = m->F + 3 * (int64_t)f;
+    double qf = tri_quality(V, F[0], F[1], F[2], NULL);
+    if (!(qf > SM_SLIVER_QUALITY) || touched[f]) continue;
+    /* The longest edge (corner ci -> ci+1) and its apex k. */
+    int ci = 0;
+    double best = -1;
+    for (int d = 0; d < 3; d++) {
+      const double *p = V + 3 * (int64_t)F[d], *q = V + 3 * (int64_t)F[(d + 1) % 3];
+      double l2 = (q[0] - p[0]) * (q[0] - p[0]) + (q[1] - p[1]) * (q[1] - p[1]) +
+                  (q[2] - p[2]) * (q[2] - p[2]);
+      if (l2 > best) {
+        best = l2;
+        ci = d;
+      }
+    }
+    int32_t i = F[ci], j = F[(ci + 1) % 3], k = F[(ci + 2) % 3];
+    /* A cap: the apex projects inside the long edge (obtuse angle at k). */
+    const double *pi = V + 3 * (int64_t)i, *pj = V + 3 * (int64_t)j, *pk = V + 3 * (int64_t)k;
+    double dot = (pi[0] - pk[0]) * (pj[0] - pk[0]) + (pi[1] - pk[1]) * (pj[1] - pk[1]) +
+                 (pi[2] - pk[2]) * (pj[2] - pk[2]);
+    if (!(dot < 0)) continue;
+    int32_t g = e->face_adj[3 * (int64_t)f + ci];
+    if (g < 0 || touched[g]) continue;
+    const int32_t *G = m->F + 3 * (int64_t)g;
+    int gd = -1;
+    for (int d = 0; d < 3; d++)
+      if (G[d] == j && G[(d + 1) % 3] == i) gd = d;
+    if (gd < 0) continue; /* the neighbour is not consistently oriented */
+    int32_t l = G[(gd + 2) % 3];
+    if (l == k || edge_exists(e, added, *nflipped, k, l)) continue;
+    /* (i, j, k) + (j, i, l) -> (i, l, k) + (l, j, k): same boundary i->l->j->k->i. */
+    double ng[3], n1[3], n2[3];
+    double qg = tri_quality(V, G[0], G[1], G[2], ng);
+    double q1 = tri_quality(V, i, l, k, n1), q2 = tri_quality(V, l, j, k, n2);
+    if (!(fmax(q1, q2) < fmax(qf, qg))) continue;
+    if (!(n1[0] * ng[0] + n1[1] * ng[1] + n1[2] * ng[2] > 0) ||
+        !(n2[0] * ng[0] + n2[1] * ng[1] + n2[2] * ng[2] > 0))
+      continue;
+    int32_t *cf = c->F + 3 * (int64_t)f, *cg = c->F + 3 * (int64_t)g;
+    cf[0] = i; cf[1] = l; cf[2] = k;
+    cg[0] = l; cg[1] = j; cg[2] = k;
+    touched[f] = touched[g] = 1;
+    added[2 * *nflipped] = k < l ? k : l;
+    added[2 * *nflipped + 1] = k < l ? l : k;
+    (*nflipped)++;
+  }
+  free(touched);
+  free(added);
+  sm_edges_destroy(e);
+  if (rc || !*nflipped) {
+    sm_mesh_destroy(c);
+    return rc;
+  }
+  *out = c;
+  return SM_OK;
 }
 
 /* phi_i(v) = n_v . u_i(v), for the k modes after the kernel. */
@@ -164,7 +322,11 @@ static int compute_elastic(const sm_mesh *m, const sm_basis_opts *o, sm_basis *b
   double *U = NULL, *ev = NULL;
   int rc = (!M3 || !N) ? sm_error_set(err, SM_ENOMEM, "elastic basis: out of memory") : SM_OK;
   if (!rc) rc = sm_mesh_vertex_normals(m, N);
-  if (!rc) rc = assemble_hessian(m, o, &H, err);
+  sm_mesh *fixed = NULL;
+  int nflipped = 0;
+  if (!rc) rc = flip_slivers(m, &fixed, &nflipped, err);
+  if (!rc) rc = assemble_hessian(fixed ? fixed : m, o, &H, err);
+  sm_mesh_destroy(fixed);
   for (int32_t v = 0; !rc && v < n; v++) M3[3 * v] = M3[3 * v + 1] = M3[3 * v + 2] = b->mass[v];
   b->timing.assembly += sm_now() - t0;
   int expected = 6 * b->n_components, nev = o->k + expected + SM_KERNEL_MARGIN;
@@ -182,6 +344,16 @@ static int compute_elastic(const sm_mesh *m, const sm_basis_opts *o, sm_basis *b
     rc = eigs(H, M3, nev, o, ev, U, &b->timing, err);
     if (rc) break;
     b->n_kernel = sm_basis_kernel_size(ev, nev, expected);
+    /* Rigid motions are always in the kernel: fewer zero modes than that means rounding
+     * (an ill-conditioned Hessian) blurred the gap, and the "basis" would start with
+     * near-rigid motions. Say so rather than return it. */
+    if (b->n_kernel < expected) {
+      rc = sm_error_set(err, SM_ENUMERIC, "elastic basis: the rigid kernel is not resolved "
+                        "(%d clear zero modes, %d expected; eigenvalues %g .. %g): the "
+                        "Hessian is ill-conditioned (degenerate faces?)", b->n_kernel,
+                        expected, ev[0], ev[expected]);
+      break;
+    }
     if (b->n_kernel + o->k <= nev) break;
     /* More zero modes than expected (e.g. an unbent flat patch): solve again, wider. */
     nev = b->n_kernel + o->k + SM_KERNEL_MARGIN;

@@ -10,6 +10,9 @@
  *   rigid kernel (found by the eigenvalue gap, 6 per component) is removed, each remaining
  *   mode is projected on the vertex normals, phi_i(v) = n_v . u_i(v); gram_L is the lower
  *   Cholesky factor of Phi^T M Phi; its leading j x j block factors the leading block.
+ *   H is assembled after flipping away sliver caps (faces with nearly collinear corners,
+ *   lmax^2 / area > 1e4; same vertices, same surface), whose stiffness would otherwise
+ *   swamp the spectrum; fewer zero modes than 6 per component is SM_ENUMERIC.
  *   Dense storage is column-major: phi[v + n*i] is function i at vertex v.
  *   Thread-safe on distinct outputs (BLAS threading is the caller's business); the cancel
  *   callback, if set, is polled between eigensolver iterations (SM_ECANCELED).

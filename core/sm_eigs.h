@@ -15,7 +15,8 @@
  *   serialized by a process-wide mutex inside this module (CHOLMOD factorization runs
  *   outside it). The cancel callback (may be NULL) is polled every iteration.
  *   Errors: SM_EINVAL (sizes), SM_ENOMEM, SM_ENUMERIC (K not positive definite, ARPACK
- *   failure or no convergence; the message says which), SM_ECANCELED.
+ *   failure or no convergence within maxiter restarts / maxsolves operator applications;
+ *   the message says which), SM_ECANCELED.
  */
 #ifndef SM_EIGS_H
 #define SM_EIGS_H
@@ -30,7 +31,9 @@ typedef struct sm_eigs_opts {
   double sigma;     /* shift, < smallest eigenvalue */
   double tol;       /* ARPACK relative tolerance (0 = 1e-9) */
   int ncv;          /* Lanczos vectors (0 = automatic) */
-  int maxiter;      /* restarts (0 = automatic) */
+  int maxiter;      /* restarts (0 = automatic: 100) */
+  int maxsolves;    /* operator applications (0 = automatic: 10 ncv + 100); with maxiter
+                     * it bounds the time a failing run takes (normal runs need 1-2 ncv) */
   int ordering;     /* fill-reducing ordering: SM_ORDER_* (0 = CHOLMOD's default choice) */
   int (*cancel)(void *ud);
   void *cancel_ud;
