@@ -87,7 +87,9 @@ typedef struct sm_sinkhorn_opts {
   int knn;          /* enum sm_knn_strategy (default AUTO: sm_knn's rule, kd-tree for
                        d < SM_KNN_CROSSOVER_D) */
   int threads;      /* neighbour search threads (default 2): the kd-tree search's, or
-                       the two brute-force directions run concurrently */
+                       the two brute-force directions run concurrently when their K
+                       differ (with one K, brute force does both in one pass, on one
+                       thread: sm_knn_query_both) */
   int log_domain;   /* 1: plain log-domain iterations, no kernel scaling (the slow
                        reference path; for tests and measurements) */
   int (*cancel)(void *ud); /* nonzero = stop (SM_ECANCELED); may be NULL */
