@@ -1341,7 +1341,7 @@ static int cmd_distance(int argc, char **argv) {
   const char *addr;
   if (take_server(&argc, argv, &addr) || parse_match_args(argc, argv, &m)) return usage(stderr);
   if (addr) return remote_distance(addr, &m);
-  m.mo.want_yx = 1;
+  sm_distance_match_opts(&m.mo);
   int rc = run_match(&m, &mr);
   sm_distance_parts d;
   sm_error err;

@@ -107,3 +107,8 @@ int sm_shape_distance(const sm_shape *x, const sm_shape *y, const int32_t *T_xy,
   free(Fy);
   return SM_OK;
 }
+
+void sm_distance_match_opts(sm_match_opts *o) {
+  o->want_yx = 1;
+  o->orientation_fix = 0;
+}

@@ -262,6 +262,7 @@ static int op_match(sm_job *j, uint8_t opcode, const uint8_t *p, size_t n, resul
   if (match_opts(j, &q, &mo, &key, r)) return -1;
   int want_dist = opcode == SM_OP_DISTANCE || (q.flags & SM_MATCH_F_WANT_DISTANCE);
   mo.want_yx = want_dist || (q.flags & SM_MATCH_F_WANT_YX);
+  if (opcode == SM_OP_DISTANCE) sm_distance_match_opts(&mo); /* MATCH keeps its mirror check */
   pair_ctx c;
   memset(&c, 0, sizeof c);
   sm_match_result mr;
@@ -562,7 +563,7 @@ static query_ctx *query_begin(sm_job *j, const uint8_t *p, size_t n, result *r) 
   c->key = default_key(j->srv);
   sm_match_opts_default(&c->mo);
   c->mo.k1 = c->key.k_lb < c->mo.k1 ? c->key.k_lb : c->mo.k1;
-  c->mo.want_yx = 1;
+  sm_distance_match_opts(&c->mo);
   sm_error err;
   sm_error_clear(&err);
   sm_store_prep_info info;
