@@ -11,6 +11,18 @@
 #include "sm_mesh.h"
 #include "sm_synth.h"
 
+/* Signed enclosed volume (divergence theorem); positive for a closed outward surface. */
+static inline double tm_signed_volume(const sm_mesh *m) {
+  double vol = 0;
+  for (int32_t f = 0; f < m->nf; f++) {
+    const double *a = m->V + 3 * m->F[3 * f], *b = m->V + 3 * m->F[3 * f + 1],
+                 *c = m->V + 3 * m->F[3 * f + 2];
+    vol += (a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0]) +
+            a[2] * (b[0] * c[1] - b[1] * c[0])) / 6;
+  }
+  return vol;
+}
+
 /* Deterministic uniform in [0,1) (xorshift64*), so tests are reproducible. */
 static inline double tm_rand(uint64_t *s) {
   *s ^= *s >> 12;

@@ -25,17 +25,6 @@ static sm_mesh *make_mesh(int32_t nv, const double *V, int32_t nf, const int32_t
 
 static double total_area(const sm_mesh *m) { return sm_mesh_face_areas(m, NULL); }
 
-/* Signed volume (divergence theorem); positive for a closed outward surface. */
-static double signed_volume(const sm_mesh *m) {
-  double vol = 0;
-  for (int32_t f = 0; f < m->nf; f++) {
-    const double *a = m->V + 3 * m->F[3 * f], *b = m->V + 3 * m->F[3 * f + 1],
-                 *c = m->V + 3 * m->F[3 * f + 2];
-    vol += (a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0]) +
-            a[2] * (b[0] * c[1] - b[1] * c[0])) / 6;
-  }
-  return vol;
-}
 
 /* ---- validate ---- */
 
@@ -141,7 +130,7 @@ static void test_areas_and_mass(void) {
 
 static void test_normals(void) {
   sm_mesh *m = tm_icosphere(3);
-  CHECK(signed_volume(m) > 4); /* the test mesh is outward (4/3 pi r^3 minus facets) */
+  CHECK(tm_signed_volume(m) > 4); /* the test mesh is outward (4/3 pi r^3 minus facets) */
   double *N = malloc((size_t)m->nv * 3 * sizeof *N);
   REQUIRE(sm_mesh_vertex_normals(m, N) == SM_OK);
   double worst = 1, worst_len = 0;
@@ -358,8 +347,8 @@ static void test_clean_drops(void) {
   }
   CHECK(ok);
   CHECK(all_consistent(out));
-  CHECK(signed_volume(ico) > 3);
-  CHECK_NEAR(signed_volume(out), signed_volume(ico), 1e-12);
+  CHECK(tm_signed_volume(ico) > 3);
+  CHECK_NEAR(tm_signed_volume(out), tm_signed_volume(ico), 1e-12);
   CHECK_NEAR(total_area(out), total_area(ico), 1e-12);
   /* `in` untouched */
   CHECK(memcmp(in->V, before->V, (size_t)nv * 3 * sizeof(double)) == 0 && same_faces(in, before));
@@ -464,7 +453,7 @@ static void test_orient_sphere(void) {
   CHECK(!all_consistent(m));
   REQUIRE(sm_mesh_clean(m, NULL, &out, &r, &err) == SM_OK);
   CHECK_MSG(r.flipped_faces == k, "flipped %d, expected %d", r.flipped_faces, k);
-  CHECK(all_consistent(out) && signed_volume(out) > 4);
+  CHECK(all_consistent(out) && tm_signed_volume(out) > 4);
   CHECK(same_faces(out, ref)); /* exactly the original winding back */
   sm_mesh_destroy(out);
   sm_mesh_destroy(m);
@@ -481,9 +470,9 @@ static void test_orient_sphere(void) {
   /* inside-out: every face flipped */
   REQUIRE(sm_mesh_copy(ref, &m, NULL) == SM_OK);
   for (int32_t f = 0; f < m->nf; f++) flip_face(m, f);
-  CHECK(signed_volume(m) < 0);
+  CHECK(tm_signed_volume(m) < 0);
   REQUIRE(sm_mesh_clean(m, NULL, &out, &r, &err) == SM_OK);
-  CHECK(r.flipped_faces == m->nf && signed_volume(out) > 4);
+  CHECK(r.flipped_faces == m->nf && tm_signed_volume(out) > 4);
   sm_mesh_destroy(out);
   sm_mesh_destroy(m);
   sm_mesh_destroy(ref);
@@ -492,7 +481,7 @@ static void test_orient_sphere(void) {
 static void test_orient_torus_and_union(void) {
   /* inside-out torus (non-convex, genus 1), oriented in place */
   sm_mesh *t = tm_torus(24, 12, 2, 0.7);
-  double v0 = signed_volume(t);
+  double v0 = tm_signed_volume(t);
   CHECK(v0 > 0);
   for (int32_t f = 0; f < t->nf; f++) flip_face(t, f);
   flip_random(t, 0.2, 5);
@@ -501,7 +490,7 @@ static void test_orient_torus_and_union(void) {
   REQUIRE(sm_mesh_orient(t, &flipped, &bad, &err) == SM_OK);
   CHECK(bad == 0 && flipped > t->nf / 2);
   CHECK(all_consistent(t));
-  CHECK_NEAR(signed_volume(t), v0, 1e-9 * v0);
+  CHECK_NEAR(tm_signed_volume(t), v0, 1e-9 * v0);
 
   /* two spheres, one inside-out: each closed component is turned outward on its own */
   sm_mesh *a = tm_icosphere(2), *b = tm_icosphere(2);
@@ -511,7 +500,7 @@ static void test_orient_torus_and_union(void) {
   REQUIRE(sm_mesh_clean(u, NULL, &out, &r, &err) == SM_OK);
   CHECK(r.components == 2 && r.flipped_faces == b->nf);
   CHECK(all_consistent(out));
-  CHECK(signed_volume(out) > 2 * 4);
+  CHECK(tm_signed_volume(out) > 2 * 4);
   sm_mesh_destroy(out);
   sm_mesh_destroy(u);
   sm_mesh_destroy(a);

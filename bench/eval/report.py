@@ -178,7 +178,7 @@ def section_robust(out, md):
     md.append(f"Command: `bench/eval/run.sh robust` ({t['total_s']:.0f} s). Queries: the first "
               f"shape of each class ({', '.join(ro['queries'])}), deformed by the suite "
               "(eval_tool: stretch along the principal axis; bulge / dent of a region of "
-              "radius 0.15 sqrt(area) by 0.3 of the radius along the normals; quadric "
+              "radius 0.15 sqrt(area) along the normals, peak offset = strength x radius; quadric "
               "decimation to a fraction of the vertices; noise along the normals in mean edge "
               "lengths). Each deformed query is classified by its nearest neighbour among the "
               "other 39 undeformed shapes (its own original excluded). Entries: correct / "
