@@ -18,3 +18,10 @@ cmake --build build-asan -j"$jobs"
 # ASan they would take most of CI's time, so that pass runs their synthetic part only.
 (cd build-asan && SM_TEST_SYNTHETIC_ONLY=1 ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 \
    UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 ctest --output-on-failure -j"$jobs")
+
+# The evaluation suite's regression check: one pair at two k values and a 2-class subset
+# through the daemon, against bounds from the full run (bench/eval/ci_bounds.json).
+# Exit 77 = skipped (no ../shared/data).
+rc=0
+./bench/eval/run.sh ci || rc=$?
+if [ "$rc" -ne 0 ] && [ "$rc" -ne 77 ]; then exit "$rc"; fi

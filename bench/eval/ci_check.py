@@ -38,6 +38,7 @@ def derive_bounds(full_out):
         D = np.array(cl["configs"][cfg]["D"])[np.ix_(keep, keep)]
         sub[cfg] = {"D": D.tolist(), "loo": loo(D, sub["labels"])}
     bounds = {"pair": CI_PAIR, "ks": CI_KS, "geo_mean_full": geo, "classes": CI_CLASSES,
+              "k_basis": ab["pairs"][CI_PAIR]["k_basis"],
               "subset": sub, "classify_k": cl["k"], "sinkhorn_steps": cl["sinkhorn_steps"]}
     with open(BOUNDS, "w") as f:
         json.dump(bounds, f, indent=1)
@@ -60,7 +61,8 @@ def run(suite, args):
     with open(BOUNDS) as f:
         bounds = json.load(f)
     bad = []
-    res, _ = suite.run_pairs("ci", CI_KS, [CI_PAIR])
+    # The full run's basis size: eigenvectors of close eigenvalues depend on it.
+    res, _ = suite.run_pairs("ci", CI_KS, [CI_PAIR], k_basis=bounds["k_basis"])
     for r in res[CI_PAIR]["runs"]:
         key = f"{r['config']} k={r['k']}"
         ref = bounds["geo_mean_full"].get(key)

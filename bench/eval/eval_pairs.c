@@ -21,7 +21,8 @@
  * steps (nothing transport-based anywhere), as in bench_match.
  *
  * Usage: eval_pairs --pair NAME --json OUT [--ks 30,50,...] [--configs a,b] [--cache DIR]
- *                   [--visual DIR] [--visual-k K] [--blas-threads N]
+ *                   [--visual DIR] [--visual-k K] [--k-basis K] [--blas-threads N]
+ * --k-basis raises the basis size (default max(--ks, 100)).
  * Exit: 0, 1 on a failure, 77 when the pair's files are absent (no ../shared/data).
  */
 #define _POSIX_C_SOURCE 200809L
@@ -390,12 +391,13 @@ static int config_selected(const char *list, const char *name) {
 static void usage(void) {
   fprintf(stderr, "usage: eval_pairs --pair homer|head|lion|man --json OUT [--ks 30,50,...] "
                   "[--configs nn+lb,...] [--cache DIR] [--visual DIR] [--visual-k K] "
-                  "[--blas-threads N]\n");
+                  "[--k-basis K] [--blas-threads N]\n");
 }
 
 int main(int argc, char **argv) {
   const char *pair = NULL, *json = NULL, *cache = "eval-cache", *visual = NULL, *cfgs = NULL;
   int ks[MAX_KS] = {30, 50, 70, 90, 110, 130, 150}, nk = 7, visual_k = 100, blas = 1;
+  int kbasis_arg = 0;
   for (int i = 1; i < argc; i++) {
     int more = i + 1 < argc;
     if (!strcmp(argv[i], "--pair") && more) pair = argv[++i];
@@ -405,6 +407,7 @@ int main(int argc, char **argv) {
     else if (!strcmp(argv[i], "--visual-k") && more) visual_k = atoi(argv[++i]);
     else if (!strcmp(argv[i], "--configs") && more) cfgs = argv[++i];
     else if (!strcmp(argv[i], "--blas-threads") && more) blas = atoi(argv[++i]);
+    else if (!strcmp(argv[i], "--k-basis") && more) kbasis_arg = atoi(argv[++i]);
     else if (!strcmp(argv[i], "--ks") && more) {
       if ((nk = parse_ks(argv[++i], ks)) < 1) return usage(), 2;
     } else {
@@ -418,6 +421,9 @@ int main(int argc, char **argv) {
   int kbasis = DESC_K;
   for (int i = 0; i < nk; i++) kbasis = ks[i] > kbasis ? ks[i] : kbasis;
   if (visual_k > kbasis) kbasis = visual_k;
+  /* A larger basis than needed: the eigenvectors of repeated or close eigenvalues depend on
+   * how many were computed, so a run that must reproduce another uses its basis size. */
+  if (kbasis_arg > kbasis) kbasis = kbasis_arg;
 
   pair_data pd = {.spec = ps};
   sm_error err = {0};

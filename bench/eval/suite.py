@@ -42,6 +42,8 @@ SWEEP_KS = [30, 50, 70, 90, 110, 130, 150]
 CONFIGS = ["nn+lb", "nn+elastic", "sinkhorn+lb", "sinkhorn+elastic", "sinkhorn+hybrid"]
 DEFAULT_CONFIG = "sinkhorn+elastic"
 HUMANS = {"david", "michael", "victoria"}
+# The terms of the distance (core/sm_distance.h), kept per pair for analysis.
+PARTS = ["point_xy", "point_yx", "spectrum_lb", "spectrum_elastic"]
 
 # The shape distance used for retrieval and classification: the product's distance
 # (core/sm_distance.h) after a lighter refinement than a full match (k up to CLASSIFY_K,
@@ -165,31 +167,36 @@ class Suite:
                            env=self.env, capture_output=True, text=True)
         wall = time.time() - t0
         dist = [None] * len(pairs)
+        self.last_parts = [None] * len(pairs)
         for line in r.stdout.splitlines():
             rec = json.loads(line)
             if rec.get("ok"):
                 dist[rec["index"]] = rec["distance"]
+                self.last_parts[rec["index"]] = [rec[k] for k in PARTS]
         failed = sum(d is None for d in dist)
         if failed:
             log(f"  {tag}: {failed} of {len(pairs)} items failed: {r.stderr.strip()[:500]}")
         return dist, wall
 
     # ---- 1 + 2 + 4: pairs ---------------------------------------------------------------
-    def eval_pairs_cmd(self, pair, ks, out, configs=None, visual=None):
+    def eval_pairs_cmd(self, pair, ks, out, configs=None, visual=None, k_basis=None):
         cmd = [self.eval_pairs, "--pair", pair, "--ks", ",".join(map(str, ks)),
                "--cache", os.path.join(self.work, "basis-cache"), "--json", out]
         if configs:
             cmd += ["--configs", ",".join(configs)]
         if visual:
             cmd += ["--visual", visual]
+        if k_basis:
+            cmd += ["--k-basis", str(k_basis)]
         return cmd
 
-    def run_pairs(self, name, ks, pairs, configs=None):
+    def run_pairs(self, name, ks, pairs, configs=None, k_basis=None):
         t0 = time.time()
         outs = {p: os.path.join(self.out, f"{name}_{p}.json") for p in pairs}
         # head (15k vertices) is the longest: start it first so the two slots stay busy.
         order = sorted(pairs, key=lambda p: p != "head")
-        codes = self.run_parallel([self.eval_pairs_cmd(p, ks, outs[p], configs) for p in order])
+        codes = self.run_parallel([self.eval_pairs_cmd(p, ks, outs[p], configs, k_basis=k_basis)
+                                   for p in order])
         res = {}
         for p, c in zip(order, codes):
             if c == 77:
@@ -280,10 +287,13 @@ class Suite:
             for cfg in configs:
                 dist, wall = self.batch([(ids[i], ids[j]) for i, j in pairs], cfg, f"{name}_{cfg}")
                 D = np.zeros((n, n))
-                for (i, j), d in zip(pairs, dist):
+                P = np.zeros((len(PARTS), n, n))
+                for (i, j), d, parts in zip(pairs, dist, self.last_parts):
                     D[i, j] = D[j, i] = np.nan if d is None else d
+                    P[:, i, j] = P[:, j, i] = np.nan if parts is None else parts
                 result["configs"][cfg] = {"D": D.tolist(), "wall_s": wall,
-                                          "per_distance_s": wall / len(pairs)}
+                                          "per_distance_s": wall / len(pairs),
+                                          "parts": {k: P[m].tolist() for m, k in enumerate(PARTS)}}
                 log(f"  {cfg}: {len(pairs)} distances in {wall:.0f} s")
         finally:
             self.stop_daemon()
