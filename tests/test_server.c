@@ -33,6 +33,7 @@
 #include "sm_synth.h"
 #include "sm_test.h"
 #include "sm_test_daemon.h"
+#include "sm_test_wire.h"
 
 
 #define K 30
@@ -65,71 +66,12 @@ static int start_daemon(const char *extra) {
 
 /* ------------------------------------------------------------------ wire */
 
+/* Every test connection; a failed connect ends the program (REQUIRE). */
 static int connect_to(int port) {
-  int fd = socket(AF_INET, SOCK_STREAM, 0);
+  int fd = wire_connect(port, IO_TIMEOUT_S);
   REQUIRE(fd >= 0);
-  struct sockaddr_in a;
-  memset(&a, 0, sizeof a);
-  a.sin_family = AF_INET;
-  a.sin_port = htons((uint16_t)port);
-  a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  REQUIRE(connect(fd, (struct sockaddr *)&a, sizeof a) == 0);
-  struct timeval tv = {IO_TIMEOUT_S, 0};
-  setsockopt(fd, SOL_SOCKET, SO_RCVTIMEO, &tv, sizeof tv);
-  setsockopt(fd, SOL_SOCKET, SO_SNDTIMEO, &tv, sizeof tv);
   return fd;
 }
-
-static int send_all(int fd, const void *b, size_t n) {
-  const uint8_t *p = b;
-  while (n) {
-    ssize_t w = send(fd, p, n, MSG_NOSIGNAL);
-    if (w < 0 && errno == EINTR) continue;
-    if (w <= 0) return -1;
-    p += w;
-    n -= (size_t)w;
-  }
-  return 0;
-}
-
-static int recv_all(int fd, void *b, size_t n) {
-  uint8_t *p = b;
-  while (n) {
-    ssize_t r = recv(fd, p, n, 0);
-    if (r < 0 && errno == EINTR) continue;
-    if (r <= 0) return -1;
-    p += r;
-    n -= (size_t)r;
-  }
-  return 0;
-}
-
-typedef struct frame {
-  sm_proto_header h;
-  uint8_t *buf; /* whole frame */
-  const uint8_t *body;
-  uint32_t body_len;
-} frame;
-
-/* 0, or -1 on EOF/timeout/parse error. */
-static int recv_frame(int fd, frame *f) {
-  memset(f, 0, sizeof *f);
-  uint8_t hdr[SM_PROTO_HEADER_LEN];
-  if (recv_all(fd, hdr, sizeof hdr)) return -1;
-  if (sm_proto_parse_header(hdr, sizeof hdr, UINT32_MAX, &f->h) != SM_PROTO_HEADER_LEN) return -1;
-  f->buf = malloc(SM_PROTO_HEADER_LEN + (size_t)f->h.payload_len);
-  REQUIRE(f->buf);
-  memcpy(f->buf, hdr, sizeof hdr);
-  if (recv_all(fd, f->buf + SM_PROTO_HEADER_LEN, f->h.payload_len)) return -1;
-  sm_proto_frame pf;
-  ptrdiff_t n = sm_proto_parse_frame(f->buf, SM_PROTO_HEADER_LEN + f->h.payload_len, UINT32_MAX, &pf);
-  if (n < 0) return -1;
-  f->body = pf.body;
-  f->body_len = pf.body_len;
-  return 0;
-}
-
-static void frame_free(frame *f) { free(f->buf); }
 
 /* Encodes with enc into a growing buffer and sends. */
 #define SEND(fd, call_with_buf_cap)                                                  \
@@ -149,12 +91,6 @@ static void frame_free(frame *f) { free(f->buf); }
     free(buf);                                                                       \
   } while (0)
 
-static sm_proto_header req_hdr(uint32_t rid) {
-  sm_proto_header h;
-  memset(&h, 0, sizeof h);
-  h.request_id = rid;
-  return h;
-}
 
 static void hello(int fd, sm_proto_hello_resp *out) {
   sm_proto_hello_req q;
@@ -359,21 +295,6 @@ static int maps_equal(const int32_t *a, const int32_t *b, uint32_t n) {
   return diff == 0;
 }
 
-static void rm_rf(const char *dir) {
-  DIR *d = opendir(dir);
-  if (!d) return;
-  struct dirent *de;
-  while ((de = readdir(d))) {
-    if (!strcmp(de->d_name, ".") || !strcmp(de->d_name, "..")) continue;
-    char p[1200];
-    snprintf(p, sizeof p, "%s/%s", dir, de->d_name);
-    struct stat st;
-    if (!lstat(p, &st) && S_ISDIR(st.st_mode)) rm_rf(p);
-    else unlink(p);
-  }
-  closedir(d);
-  rmdir(dir);
-}
 
 /* Path of the elastic basis file of shape s (first match in bases/), or "" */
 static int find_basis(const shape *s, const char *kind, char *out, size_t n) {

@@ -42,6 +42,7 @@
 #include "sm_synth.h"
 #include "sm_test.h"
 #include "sm_test_daemon.h"
+#include "sm_test_wire.h"
 
 
 #define K 30
@@ -82,91 +83,7 @@ static int start_daemon(const char *extra) {
 /* ------------------------------------------------------------------ wire */
 
 /* -1 on failure (thread-safe: no REQUIRE). */
-static int connect_to(int port) {
-  int fd = socket(AF_INET, SOCK_STREAM, 0);
-  if (fd < 0) return -1;
-  struct sockaddr_in a;
-  memset(&a, 0, sizeof a);
-  a.sin_family = AF_INET;
-  a.sin_port = htons((uint16_t)port);
-  a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  if (connect(fd, (struct sockaddr *)&a, sizeof a)) {
-    close(fd);
-    return -1;
-  }
-  struct timeval tv = {IO_TIMEOUT_S, 0};
-  setsockopt(fd, SOL_SOCKET, SO_RCVTIMEO, &tv, sizeof tv);
-  setsockopt(fd, SOL_SOCKET, SO_SNDTIMEO, &tv, sizeof tv);
-  return fd;
-}
-
-static int send_all(int fd, const void *b, size_t n) {
-  const uint8_t *p = b;
-  while (n) {
-    ssize_t w = send(fd, p, n, MSG_NOSIGNAL);
-    if (w < 0 && errno == EINTR) continue;
-    if (w <= 0) return -1;
-    p += w;
-    n -= (size_t)w;
-  }
-  return 0;
-}
-
-static int recv_all(int fd, void *b, size_t n) {
-  uint8_t *p = b;
-  while (n) {
-    ssize_t r = recv(fd, p, n, 0);
-    if (r < 0 && errno == EINTR) continue;
-    if (r <= 0) return -1;
-    p += r;
-    n -= (size_t)r;
-  }
-  return 0;
-}
-
-typedef struct frame {
-  sm_proto_header h;
-  uint8_t *buf;
-  const uint8_t *body;
-  uint32_t body_len;
-} frame;
-
-static int recv_frame(int fd, frame *f) {
-  memset(f, 0, sizeof *f);
-  uint8_t hdr[SM_PROTO_HEADER_LEN];
-  if (recv_all(fd, hdr, sizeof hdr)) return -1;
-  if (sm_proto_parse_header(hdr, sizeof hdr, UINT32_MAX, &f->h) != SM_PROTO_HEADER_LEN) return -1;
-  f->buf = malloc(SM_PROTO_HEADER_LEN + (size_t)f->h.payload_len);
-  if (!f->buf) return -1;
-  memcpy(f->buf, hdr, sizeof hdr);
-  if (recv_all(fd, f->buf + SM_PROTO_HEADER_LEN, f->h.payload_len)) {
-    free(f->buf);
-    f->buf = NULL;
-    return -1;
-  }
-  sm_proto_frame pf;
-  ptrdiff_t n = sm_proto_parse_frame(f->buf, SM_PROTO_HEADER_LEN + f->h.payload_len, UINT32_MAX, &pf);
-  if (n < 0) {
-    free(f->buf);
-    f->buf = NULL;
-    return -1;
-  }
-  f->body = pf.body;
-  f->body_len = pf.body_len;
-  return 0;
-}
-
-static void frame_free(frame *f) {
-  free(f->buf);
-  f->buf = NULL;
-}
-
-static sm_proto_header req_hdr(uint32_t rid) {
-  sm_proto_header h;
-  memset(&h, 0, sizeof h);
-  h.request_id = rid;
-  return h;
-}
+static int connect_to(int port) { return wire_connect(port, IO_TIMEOUT_S); }
 
 /* Request kinds. */
 enum { R_PING, R_HAS, R_MATCH, R_DIST, R_PREP, R_STATS };
@@ -438,21 +355,6 @@ static void local_match(const shape *x, const shape *y, int32_t **map, sm_distan
   sm_shape_destroy(sy);
 }
 
-static void rm_rf(const char *dir) {
-  DIR *d = opendir(dir);
-  if (!d) return;
-  struct dirent *de;
-  while ((de = readdir(d))) {
-    if (!strcmp(de->d_name, ".") || !strcmp(de->d_name, "..")) continue;
-    char p[1200];
-    snprintf(p, sizeof p, "%s/%s", dir, de->d_name);
-    struct stat st;
-    if (!lstat(p, &st) && S_ISDIR(st.st_mode)) rm_rf(p);
-    else unlink(p);
-  }
-  closedir(d);
-  rmdir(dir);
-}
 
 /* ------------------------------------------------------------------ 1. pipelined clients */
 
