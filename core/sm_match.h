@@ -79,6 +79,7 @@ typedef struct sm_match_opts {
   int samples;      /* farthest-point samples for intermediate refinement iterations */
   int orientation_fix; /* try the other orientation when the result looks mirrored */
   int multi_start;  /* also refine from the other init, keep the smoother map (see below) */
+  int global;       /* global hypothesis search before the refinement (see above) */
   const int32_t *landmarks; /* nlandmarks pairs (x, y), cleaned indices; may be NULL */
   int nlandmarks;
   const int32_t *init_map;  /* optional initial map X -> Y (cleaned indices): skips init */
@@ -98,6 +99,8 @@ typedef struct sm_match_result {
   int flipped;              /* 1 if the orientation fix replaced the first result */
   int init_used;            /* enum sm_match_init of the start that produced T */
   double dirichlet;         /* Dirichlet energy of T (cotan weights of X, unit area) */
+  double confidence;        /* in [0, 1]: how much the map can be trusted (see above) */
+  int hypothesis;           /* index of the global search's winning start (0 = descriptors) */
   double t_init, t_refine;  /* seconds */
 } sm_match_result;
 
