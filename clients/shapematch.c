@@ -83,7 +83,8 @@ static int usage(FILE *f) {
           "        distances of the pairs 'A B' (one per line of FILE), or of A against every\n"
           "        mesh of a directory or list file; N requests in flight (default 4); one\n"
           "        JSON line per result on stdout as it arrives; --maps DIR also writes each\n"
-          "        map to DIR/INDEX.txt; exit status 1 when an item failed (listed on stderr)\n"
+          "        map to DIR/INDEX.txt (the line then has its orientation and confidence);\n"
+          "        exit status 1 when an item failed (listed on stderr)\n"
           "  stats | ping\n"
           "        the daemon's counters | round-trip time\n"
           "  every server command takes --timeout S: the longest wait for one answer (batch:\n"
@@ -426,18 +427,28 @@ static int translate_inputs(const match_args *m, const sm_shape *x, const sm_sha
   return rc;
 }
 
+/* A map's confidence as a JSON value: null when it is unknown (a protocol version 1
+ * server has no such field, PROTOCOL.md 7.1) or not in [0, 1] (printf's "nan" is not
+ * JSON), so a script can tell "unknown" from a value. */
+static void confidence_json(int has, double v, char *out, size_t cap) {
+  if (has && v >= 0 && v <= 1) snprintf(out, cap, "%.6f", v);
+  else snprintf(out, cap, "null");
+}
+
 static void print_match_json(const match_args *m, const sm_shape *x, const sm_shape *y,
                              const sm_match_result *r, double t_total) {
+  char conf[32];
+  confidence_json(1, r->confidence, conf, sizeof conf);
   printf("{\"source\":\"%s\",\"target\":\"%s\",\"n_source\":%d,\"n_target\":%d,"
          "\"basis\":\"%s\",\"init\":\"%s\",\"k0\":%d,\"k1\":%d,\"step\":%d,"
-         "\"orientation\":%.6f,\"flipped\":%d,\"init_distinct\":%.6f,"
+         "\"orientation\":%.6f,\"confidence\":%s,\"flipped\":%d,\"init_distinct\":%.6f,"
          "\"start_used\":\"%s\",\"dirichlet\":%.6f,"
          "\"time\":{\"basis\":%.4f,\"init\":%.4f,\"refine\":%.4f,\"total\":%.4f},"
          "\"map\":\"%s\"}\n",
          m->a, m->b, x->mesh->n_input, y->mesh->n_input,
          m->mo.basis == SM_MATCH_LB ? "lb" : m->mo.basis == SM_MATCH_ELASTIC ? "elastic" : "hybrid",
          m->mo.init == SM_INIT_NN ? "nn" : "sinkhorn", m->mo.k0, m->mo.k1, m->mo.step,
-         r->orientation, r->flipped, r->init_distinct,
+         r->orientation, conf, r->flipped, r->init_distinct,
          r->init_used == SM_INIT_NN ? "nn" : "sinkhorn", r->dirichlet,
          x->t_clean + x->t_lb + x->t_elastic + x->t_desc + y->t_clean + y->t_lb + y->t_elastic + y->t_desc,
          r->t_init, r->t_refine, t_total, m->out ? m->out : "");
@@ -876,22 +887,29 @@ static int remote_match(const char *addr, match_args *m) {
     char hx[SM_CLIENT_ID_HEX_LEN + 1], hy[SM_CLIENT_ID_HEX_LEN + 1];
     sm_client_id_to_hex(x.id, hx);
     sm_client_id_to_hex(y.id, hy);
-    /* the local keys; init_distinct is not on the wire (null); the ids are extra */
+    /* the local keys; init_distinct is not on the wire (null), nor is confidence from a
+     * version 1 server (null); the ids are extra */
+    char conf[32];
+    confidence_json(r.has_confidence, r.confidence, conf, sizeof conf);
     printf("{\"source\":\"%s\",\"target\":\"%s\",\"n_source\":%u,\"n_target\":%u,"
            "\"basis\":\"%s\",\"init\":\"%s\",\"k0\":%d,\"k1\":%d,\"step\":%d,"
-           "\"orientation\":%.6f,\"flipped\":%d,\"init_distinct\":null,"
+           "\"orientation\":%.6f,\"confidence\":%s,\"flipped\":%d,\"init_distinct\":null,"
            "\"start_used\":\"%s\",\"dirichlet\":%.6f,"
            "\"time\":{\"basis\":%.4f,\"init\":%.4f,\"refine\":%.4f,\"total\":%.4f},"
            "\"map\":\"%s\",\"server\":true,\"source_id\":\"%s\",\"target_id\":\"%s\"}\n",
            m->a, m->b, r.nx, y.nv, basis_name(m->mo.basis),
            m->mo.init == SM_INIT_NN ? "nn" : "sinkhorn", m->mo.k0, m->mo.k1, m->mo.step,
-           r.orientation, r.flipped, r.init_used == SM_INIT_NN ? "nn" : "sinkhorn", r.dirichlet,
+           r.orientation, conf, r.flipped, r.init_used == SM_INIT_NN ? "nn" : "sinkhorn", r.dirichlet,
            r.t_prepare, r.t_init, r.t_refine, t_total, m->out ? m->out : "", hx, hy);
-  } else if (!rc)
+  } else if (!rc) {
+    char conf[32];
+    if (r.has_confidence) snprintf(conf, sizeof conf, "%.3f", r.confidence);
+    else snprintf(conf, sizeof conf, "n/a (protocol version 1 server)");
     fprintf(stderr, "matched %u -> %u vertices in %.2f s on the server (bases %.2f, init %.2f, "
-            "refine %.2f); orientation %.3f%s%s%s\n", r.nx, y.nv, t_total, r.t_prepare, r.t_init,
-            r.t_refine, r.orientation, r.flipped ? " (mirror fixed)" : "", m->out ? "; map in " : "",
-            m->out ? m->out : "");
+            "refine %.2f); orientation %.3f%s, confidence %s%s%s\n", r.nx, y.nv, t_total,
+            r.t_prepare, r.t_init, r.t_refine, r.orientation, r.flipped ? " (mirror fixed)" : "",
+            conf, m->out ? "; map in " : "", m->out ? m->out : "");
+  }
   sm_client_match_result_free(&r);
   free(lm);
   free(init);
@@ -919,8 +937,8 @@ static int remote_distance(const char *addr, match_args *m) {
     if (m->json)
       fprintf(stderr, "{\"distance\":%.9f,\"point_xy\":%.9f,\"point_yx\":%.9f,"
               "\"spectrum_lb\":%.9f,\"spectrum_elastic\":%.9f,\"orientation\":null,"
-              "\"time\":%.4f}\n", d.total, d.point_xy, d.point_yx, d.spectrum_lb,
-              d.spectrum_elastic, t);
+              "\"confidence\":null,\"time\":%.4f}\n", d.total, d.point_xy, d.point_yx,
+              d.spectrum_lb, d.spectrum_elastic, t);
     else
       fprintf(stderr, "distance %.6f (point %.6f / %.6f, LB spectrum %.6f, elastic spectrum "
               "%.6f) in %.2f s on the server\n", d.total, d.point_xy, d.point_yx, d.spectrum_lb,
@@ -1137,8 +1155,13 @@ static int batch_cb(void *ud, size_t i, const sm_client_req *req, const sm_clien
          "\"spectrum_lb\":%.9f,\"spectrum_elastic\":%.9f,\"time\":%.4f",
          d->total, d->point_xy, d->point_yx, d->spectrum_lb, d->spectrum_elastic,
          req->op == SM_OP_MATCH ? r->match.t_total : r->t_total);
+  if (req->op == SM_OP_MATCH) {
+    char conf[32];
+    confidence_json(r->match.has_confidence, r->match.confidence, conf, sizeof conf);
+    printf(",\"orientation\":%.6f,\"confidence\":%s", r->match.orientation, conf);
+  }
   if (map[0]) {
-    printf(",\"orientation\":%.6f,\"map\":", r->match.orientation);
+    printf(",\"map\":");
     json_str(stdout, map);
   }
   printf("}\n");
@@ -1326,10 +1349,10 @@ static int cmd_match(int argc, char **argv) {
     if (!rc && m.json) print_match_json(&m, x, y, &mr.r, mr.t_total);
     else if (!rc)
       fprintf(stderr, "matched %d -> %d vertices in %.2f s (bases %.2f, init %.2f, refine %.2f); "
-              "orientation %.3f%s%s%s\n", x->mesh->n_input, y->mesh->n_input, mr.t_total,
-              x->t_lb + x->t_elastic + y->t_lb + y->t_elastic, mr.r.t_init, mr.r.t_refine,
-              mr.r.orientation, mr.r.flipped ? " (mirror fixed)" : "", m.out ? "; map in " : "",
-              m.out ? m.out : "");
+              "orientation %.3f%s, confidence %.3f%s%s\n", x->mesh->n_input, y->mesh->n_input,
+              mr.t_total, x->t_lb + x->t_elastic + y->t_lb + y->t_elastic, mr.r.t_init,
+              mr.r.t_refine, mr.r.orientation, mr.r.flipped ? " (mirror fixed)" : "",
+              mr.r.confidence, m.out ? "; map in " : "", m.out ? m.out : "");
   }
   match_run_free(&mr);
   return rc ? 1 : 0;
@@ -1347,12 +1370,14 @@ static int cmd_distance(int argc, char **argv) {
   sm_error err;
   if (!rc && sm_shape_distance(mr.x, mr.y, mr.r.T, mr.r.T_yx, &d, &err)) rc = fail("distance", &err);
   if (!rc) {
+    char conf[32];
+    confidence_json(1, mr.r.confidence, conf, sizeof conf);
     printf("%.6f\n", d.total);
     if (m.json)
       fprintf(stderr, "{\"distance\":%.9f,\"point_xy\":%.9f,\"point_yx\":%.9f,"
               "\"spectrum_lb\":%.9f,\"spectrum_elastic\":%.9f,\"orientation\":%.6f,"
-              "\"time\":%.4f}\n", d.total, d.point_xy, d.point_yx, d.spectrum_lb,
-              d.spectrum_elastic, mr.r.orientation, mr.t_total);
+              "\"confidence\":%s,\"time\":%.4f}\n", d.total, d.point_xy, d.point_yx,
+              d.spectrum_lb, d.spectrum_elastic, mr.r.orientation, conf, mr.t_total);
     else
       fprintf(stderr, "distance %.6f (point %.6f / %.6f, LB spectrum %.6f, elastic spectrum "
               "%.6f) in %.2f s\n", d.total, d.point_xy, d.point_yx, d.spectrum_lb,

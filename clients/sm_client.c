@@ -328,6 +328,7 @@ static int send_req(sm_client *c, uint8_t op, const void *m, uint32_t *rid,
   if (c->goaway && op != SM_OP_CANCEL)
     return seterr(err, SM_CLIENT_ECLOSED, "the server is shutting down (GOAWAY)");
   sm_proto_header h = {0};
+  h.version = op == SM_OP_HELLO ? SM_PROTO_VERSION_HELLO : c->version;
   h.opcode = op;
   h.request_id = new_id(c);
   h.flags = c->o.payload_crc ? SM_PROTO_F_PAYLOAD_CRC : 0;
@@ -339,7 +340,6 @@ static int send_req(sm_client *c, uint8_t op, const void *m, uint32_t *rid,
                   n - SM_PROTO_HEADER_LEN, c->hello.max_payload);
   uint8_t small[512], *buf = (size_t)n <= sizeof small ? small : malloc((size_t)n);
   if (!buf) return seterr(err, SM_CLIENT_ENOMEM, "request of %td bytes", n);
-  /* The codec writes version 1, the only one it speaks: HELLO's and the negotiated one. */
   enc_req(buf, (size_t)n, &h, op, m);
   int rc = send_all(c, buf, (size_t)n, err);
   if (buf != small) free(buf);
@@ -832,7 +832,8 @@ static int fill_match(uint8_t op, const uint8_t *x, const uint8_t *y, const sm_c
   return 0;
 }
 
-static int copy_match(const sm_proto_match_resp *p, sm_client_match_result *r, sm_client_error *err) {
+static int copy_match(const sm_client *c, const sm_proto_match_resp *p, sm_client_match_result *r,
+                      sm_client_error *err) {
   memset(r, 0, sizeof *r);
   r->nx = p->map_xy.count;
   r->ny = p->map_yx.count;
@@ -852,6 +853,8 @@ static int copy_match(const sm_proto_match_resp *p, sm_client_match_result *r, s
   r->has_distance = (p->flags & SM_MATCH_R_HAS_DISTANCE) != 0;
   r->orientation = p->orientation;
   r->dirichlet = p->dirichlet;
+  r->has_confidence = c->version >= SM_PROTO_VERSION_CONFIDENCE;
+  r->confidence = p->confidence; /* the decoder checked it, or set NaN for version 1 */
   r->dist = p->dist;
   r->t_prepare = 1e-6 * (double)p->t_prepare_us;
   r->t_init = 1e-6 * (double)p->t_init_us;
@@ -871,10 +874,11 @@ int sm_client_match(sm_client *c, const uint8_t x[SM_PROTO_ID_LEN],
   sm_proto_frame f;
   int rc = fill_match(SM_OP_MATCH, x, y, o, &m, err);
   if (rc || (rc = call(c, SM_OP_MATCH, &m, &f, err))) return rc;
-  if ((rc = sm_proto_dec_match_resp(f.body, f.body_len, &p))) return bad_body(c, SM_OP_MATCH, rc, err);
+  if ((rc = sm_proto_dec_match_resp(c->version, f.body, f.body_len, &p)))
+    return bad_body(c, SM_OP_MATCH, rc, err);
   if (o && o->n_init_map && p.map_xy.count != o->n_init_map)
     return broken(c, seterr(err, SM_CLIENT_EPROTO, "map of %u entries for an init_map of %u", p.map_xy.count, o->n_init_map));
-  return copy_match(&p, r, err);
+  return copy_match(c, &p, r, err);
 }
 
 int sm_client_distance(sm_client *c, const uint8_t x[SM_PROTO_ID_LEN],
@@ -1013,8 +1017,8 @@ static int decode_item(sm_client *c, const sm_client_req *q, const sm_proto_fram
   case SM_OP_PREPARE: rc = sm_proto_dec_prepare_resp(f->body, f->body_len, &r->prepare); break;
   case SM_OP_MATCH: {
     sm_proto_match_resp p;
-    rc = sm_proto_dec_match_resp(f->body, f->body_len, &p);
-    if (!rc) return copy_match(&p, &r->match, err);
+    rc = sm_proto_dec_match_resp(c->version, f->body, f->body_len, &p);
+    if (!rc) return copy_match(c, &p, &r->match, err);
     break;
   }
   case SM_OP_DISTANCE: {

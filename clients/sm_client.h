@@ -1,4 +1,5 @@
-/* sm_client: a blocking client for the shapematch daemon (protocol/PROTOCOL.md, version 1).
+/* sm_client: a blocking client for the shapematch daemon (protocol/PROTOCOL.md, versions 1
+ * and 2: it offers both and speaks the one the server chooses).
  *
  * Contract
  *   Connection. sm_client_connect opens a TCP (or Unix, "unix:/path") connection and does
@@ -104,7 +105,7 @@ void sm_client_opts_default(sm_client_opts *o);
 int sm_client_parse_addr(const char *addr, char *host, size_t host_cap, uint16_t *port,
                          sm_client_error *err);
 
-/* Connects and says HELLO (versions 1..1, opts' token, affinity and max_response).
+/* Connects and says HELLO (versions 1..2, opts' token, affinity and max_response).
  * opts may be NULL (defaults). *out is owned by the caller (sm_client_close). */
 int sm_client_connect(const char *addr, const sm_client_opts *opts, sm_client **out,
                       sm_client_error *err);
@@ -177,6 +178,9 @@ typedef struct sm_client_match_result {
   int flipped, has_distance;
   double orientation, dirichlet;
   sm_proto_dist dist; /* valid when has_distance */
+  int has_confidence; /* 0 when the server speaks protocol version 1 (no such field) */
+  double confidence;  /* in [0, 1] that the map is correct (core/sm_match.h); NaN when
+                         !has_confidence */
   double t_prepare, t_init, t_refine, t_distance, t_total; /* seconds, server side */
 } sm_client_match_result;
 void sm_client_match_result_free(sm_client_match_result *r); /* frees the arrays only */

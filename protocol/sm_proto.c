@@ -13,6 +13,7 @@
 #include "sm_proto.h"
 
 #include <float.h>
+#include <math.h>
 #include <string.h>
 
 /* ---- CRC32C ----
@@ -237,6 +238,8 @@ static int begin(wr *w, uint8_t *buf, size_t cap, const sm_proto_header *hdr, in
   w->pos = 0;
   if (!hdr) return 0;
   if (hdr->flags & ~(uint16_t)SM_PROTO_F_KNOWN_) return SM_PROTO_EINVAL;
+  if (hdr->version && (hdr->version < SM_PROTO_VERSION_MIN || hdr->version > SM_PROTO_VERSION_MAX))
+    return SM_PROTO_EINVAL;
   if (!response && (hdr->status || (hdr->flags & SM_PROTO_F_MORE) || hdr->request_id == 0))
     return SM_PROTO_EINVAL;
   w->pos = SM_PROTO_HEADER_LEN;
@@ -248,7 +251,7 @@ static ptrdiff_t finish(wr *w, const sm_proto_header *hdr, uint8_t opcode, int r
                         uint16_t add_flags) {
   if (!hdr) return w->pos > (size_t)PTRDIFF_MAX ? SM_PROTO_EINVAL : (ptrdiff_t)w->pos;
   sm_proto_header h = *hdr;
-  h.version = SM_PROTO_VERSION;
+  if (h.version == 0) h.version = SM_PROTO_VERSION_HELLO;
   h.opcode = opcode;
   h.flags = (uint16_t)((h.flags | add_flags) & ~SM_PROTO_F_RESPONSE);
   if (response) h.flags |= SM_PROTO_F_RESPONSE;
@@ -302,7 +305,9 @@ static int hello_req_ok(const sm_proto_hello_req *m) {
 ptrdiff_t sm_proto_enc_hello_req(uint8_t *buf, size_t cap, const sm_proto_header *hdr,
                                  const sm_proto_hello_req *m) {
   wr w;
-  if (!hello_req_ok(m) || begin(&w, buf, cap, hdr, 0)) return SM_PROTO_EINVAL;
+  if (!hello_req_ok(m) || (hdr && hdr->version > SM_PROTO_VERSION_HELLO) ||
+      begin(&w, buf, cap, hdr, 0))
+    return SM_PROTO_EINVAL;
   w_u16(&w, m->min_version);
   w_u16(&w, m->max_version);
   w_u32(&w, m->max_response);
@@ -330,7 +335,7 @@ ptrdiff_t sm_proto_enc_hello_resp(uint8_t *buf, size_t cap, const sm_proto_heade
                                   const sm_proto_hello_resp *m) {
   wr w;
   if (m->version < 1 || (m->features & ~(uint32_t)SM_HELLO_F_KNOWN_) ||
-      begin(&w, buf, cap, hdr, 1))
+      (hdr && hdr->version > SM_PROTO_VERSION_HELLO) || begin(&w, buf, cap, hdr, 1))
     return SM_PROTO_EINVAL;
   w_u16(&w, m->version);
   w_u16(&w, 0);
@@ -645,6 +650,9 @@ static void ld_dist(const uint8_t *p, sm_proto_dist *d) {
   d->spectrum_elastic = ldf64(p + 32);
 }
 
+/* [0, 1]; NaN fails both comparisons */
+static int confidence_ok(double c) { return c >= 0 && c <= 1; }
+
 static int match_resp_ok(const sm_proto_match_resp *m) {
   if (m->init_used < 1 || m->init_used > 2 || (m->flags & ~(unsigned)SM_MATCH_R_KNOWN_))
     return 0;
@@ -656,9 +664,20 @@ static int match_resp_ok(const sm_proto_match_resp *m) {
   return i32s_min_ok(&m->map_xy, -1) && i32s_min_ok(&m->map_yx, -1);
 }
 ptrdiff_t sm_proto_enc_match_resp(uint8_t *buf, size_t cap, const sm_proto_header *hdr,
-                                  const sm_proto_match_resp *m) {
+                                  uint8_t version, const sm_proto_match_resp *m) {
   wr w;
-  if (!match_resp_ok(m) || begin(&w, buf, cap, hdr, 1)) return SM_PROTO_EINVAL;
+  sm_proto_header hv;
+  if (version < SM_PROTO_VERSION_MIN || version > SM_PROTO_VERSION_MAX) return SM_PROTO_EINVAL;
+  int has_conf = version >= SM_PROTO_VERSION_CONFIDENCE;
+  if (hdr) { /* the frame carries the version whose layout it holds */
+    if (hdr->version && hdr->version != version) return SM_PROTO_EINVAL;
+    hv = *hdr;
+    hv.version = version;
+    hdr = &hv;
+  }
+  if (!match_resp_ok(m) || (has_conf && !confidence_ok(m->confidence)) ||
+      begin(&w, buf, cap, hdr, 1))
+    return SM_PROTO_EINVAL;
   w_u32(&w, m->map_xy.count);
   w_u32(&w, m->map_yx.count);
   w_u16(&w, m->kC);
@@ -676,10 +695,14 @@ ptrdiff_t sm_proto_enc_match_resp(uint8_t *buf, size_t cap, const sm_proto_heade
   w_i32s(&w, &m->map_xy);
   w_i32s(&w, &m->map_yx);
   w_f64s(&w, &m->fmap);
+  if (has_conf) w_f64(&w, m->confidence); /* §7: new fields go after everything else */
   return finish(&w, hdr, SM_OP_MATCH, 1, 0);
 }
-int sm_proto_dec_match_resp(const uint8_t *p, size_t n, sm_proto_match_resp *m) {
-  if (n < 112) return SM_PROTO_ETRUNC;
+int sm_proto_dec_match_resp(uint8_t version, const uint8_t *p, size_t n,
+                            sm_proto_match_resp *m) {
+  if (version < SM_PROTO_VERSION_MIN || version > SM_PROTO_VERSION_MAX) return SM_PROTO_EVERSION;
+  uint64_t tail = version >= SM_PROTO_VERSION_CONFIDENCE ? 8 : 0;
+  if (n < 112 + tail) return SM_PROTO_ETRUNC;
   uint32_t nx = ld32(p), ny = ld32(p + 4);
   m->kC = ld16(p + 8);
   m->init_used = p[10];
@@ -693,11 +716,13 @@ int sm_proto_dec_match_resp(const uint8_t *p, size_t n, sm_proto_match_resp *m) 
   m->t_distance_us = ld64(p + 96);
   m->t_total_us = ld64(p + 104);
   uint64_t nf = (uint64_t)m->kC * m->kC;
-  if ((uint64_t)n != 112 + 4 * ((uint64_t)nx + ny) + 8 * nf) return SM_PROTO_ELENGTH;
+  if ((uint64_t)n != 112 + 4 * ((uint64_t)nx + ny) + 8 * nf + tail) return SM_PROTO_ELENGTH;
   m->map_xy = (sm_proto_i32s){NULL, p + 112, nx};
   m->map_yx = (sm_proto_i32s){NULL, p + 112 + 4 * (size_t)nx, ny};
   m->fmap = (sm_proto_f64s){NULL, p + 112 + 4 * ((size_t)nx + ny), (uint32_t)nf};
+  m->confidence = tail ? ldf64(p + n - 8) : NAN; /* NaN: absent before version 2 */
   if (ld32(p + 12) != 0 || !match_resp_ok(m)) return SM_PROTO_EFIELD;
+  if (tail && !confidence_ok(m->confidence)) return SM_PROTO_ECONFIDENCE;
   return 0;
 }
 
@@ -943,6 +968,7 @@ const char *sm_proto_strerror(int err) {
   case SM_PROTO_EFIELD: return "invalid payload field";
   case SM_PROTO_EOPCODE: return "opcode not valid here";
   case SM_PROTO_EINVAL: return "message cannot be encoded";
+  case SM_PROTO_ECONFIDENCE: return "confidence is NaN or outside [0, 1]";
   default: return "unknown error";
   }
 }

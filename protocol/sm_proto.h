@@ -24,11 +24,17 @@
  *     frame size, like snprintf: if the result exceeds cap nothing usable was written (buf
  *     contents unspecified) and the caller retries with a buffer of the returned size.
  *     With hdr == NULL they write the payload only (BATCH items are built that way).
- *     They take request_id, flags (PAYLOAD_CRC, MORE) and status from *hdr, set the opcode,
- *     the RESPONSE flag as the message requires, version and payload_len themselves, and
- *     return SM_PROTO_EINVAL for a message the decoder would reject. Array fields of a
+ *     They take request_id, flags (PAYLOAD_CRC, MORE), status and version from *hdr, set
+ *     the opcode, the RESPONSE flag as the message requires and payload_len themselves,
+ *     and return SM_PROTO_EINVAL for a message the decoder would reject. Array fields of a
  *     message may be given natively (.v) or as the little-endian view a decoder produced
  *     (.le), so a decoded message can be re-encoded unchanged (proxies, tests).
+ *   Versions. The codec speaks versions SM_PROTO_VERSION_MIN..MAX (PROTOCOL.md §7). The
+ *     header's version is the caller's: hdr->version, 0 meaning SM_PROTO_VERSION_HELLO
+ *     (HELLO frames are always version 1; the encoders of HELLO refuse any other). Only
+ *     the MATCH response's layout differs between versions, so only its encoder and
+ *     decoder take the negotiated version as an argument; every other layout is the same
+ *     in all versions the codec speaks.
  *   Errors: negative SM_PROTO_E* codes, sm_proto_strerror; sm_proto_status_for_error maps
  *   a parse/decode error to the status the peer should receive.
  */
@@ -39,9 +45,10 @@
 #include <stdint.h>
 
 #define SM_PROTO_HEADER_LEN 24
-#define SM_PROTO_VERSION 1     /* the only version this codec speaks */
 #define SM_PROTO_VERSION_MIN 1
-#define SM_PROTO_VERSION_MAX 1
+#define SM_PROTO_VERSION_MAX 2
+#define SM_PROTO_VERSION_HELLO 1 /* the header version of every HELLO frame (both ways) */
+#define SM_PROTO_VERSION_CONFIDENCE 2 /* first version whose MATCH response has confidence */
 #define SM_PROTO_ID_LEN 32     /* shape id = SHA-256 of the Draco bytes */
 #define SM_PROTO_MAGIC0 0x89
 #define SM_PROTO_MAGIC1 'S'
@@ -70,7 +77,8 @@ enum {
   SM_PROTO_EFIELD = -12,    /* enum out of range, unknown flag, reserved field not zero,
                                bad name/string */
   SM_PROTO_EOPCODE = -13,   /* opcode unknown, or not allowed here (direction, batch) */
-  SM_PROTO_EINVAL = -14     /* encoder: message cannot be encoded (bad argument) */
+  SM_PROTO_EINVAL = -14,    /* encoder: message cannot be encoded (bad argument) */
+  SM_PROTO_ECONFIDENCE = -15 /* MATCH response: confidence NaN or outside [0, 1] */
 };
 
 /* Opcodes (header byte 5). 0 is invalid. */
@@ -276,6 +284,10 @@ typedef struct sm_proto_match_resp {
   uint8_t init_used; /* 1 nn, 2 sinkhorn */
   uint8_t flags;
   double orientation, dirichlet;
+  /* Version >= SM_PROTO_VERSION_CONFIDENCE: in [0, 1] (the encoder refuses anything else,
+   * NaN included). Version 1 has no such field: its encoder ignores this one and its
+   * decoder sets NaN. */
+  double confidence;
   sm_proto_dist dist; /* zeros unless HAS_DISTANCE */
   uint64_t t_prepare_us, t_init_us, t_refine_us, t_distance_us, t_total_us;
   sm_proto_i32s map_xy; /* X input vertex -> Y input vertex or -1 */
@@ -360,7 +372,11 @@ int sm_proto_dec_prepare_req(const uint8_t *p, size_t n, sm_proto_prepare_req *m
 int sm_proto_dec_prepare_resp(const uint8_t *p, size_t n, sm_proto_prepare_resp *m);
 /* opcode: SM_OP_MATCH or SM_OP_DISTANCE (decides which flags are allowed). */
 int sm_proto_dec_match_req(uint8_t opcode, const uint8_t *p, size_t n, sm_proto_match_req *m);
-int sm_proto_dec_match_resp(const uint8_t *p, size_t n, sm_proto_match_resp *m);
+/* version: the connection's negotiated version (the layout differs, PROTOCOL.md §5.7);
+ * one the codec does not speak is SM_PROTO_EVERSION. A bad confidence is
+ * SM_PROTO_ECONFIDENCE (request-level, like EFIELD). */
+int sm_proto_dec_match_resp(uint8_t version, const uint8_t *p, size_t n,
+                            sm_proto_match_resp *m);
 int sm_proto_dec_distance_resp(const uint8_t *p, size_t n, sm_proto_distance_resp *m);
 int sm_proto_dec_query_req(const uint8_t *p, size_t n, sm_proto_query_req *m);
 int sm_proto_dec_query_resp(const uint8_t *p, size_t n, sm_proto_query_resp *m);
@@ -399,8 +415,10 @@ ptrdiff_t sm_proto_enc_prepare_resp(uint8_t *buf, size_t cap, const sm_proto_hea
 /* opcode: SM_OP_MATCH or SM_OP_DISTANCE. */
 ptrdiff_t sm_proto_enc_match_req(uint8_t *buf, size_t cap, const sm_proto_header *hdr,
                                  uint8_t opcode, const sm_proto_match_req *m);
+/* version: the layout to write; with hdr, also the frame's version (hdr->version must be
+ * 0 or equal to it). */
 ptrdiff_t sm_proto_enc_match_resp(uint8_t *buf, size_t cap, const sm_proto_header *hdr,
-                                  const sm_proto_match_resp *m);
+                                  uint8_t version, const sm_proto_match_resp *m);
 ptrdiff_t sm_proto_enc_distance_resp(uint8_t *buf, size_t cap, const sm_proto_header *hdr,
                                      const sm_proto_distance_resp *m);
 ptrdiff_t sm_proto_enc_query_req(uint8_t *buf, size_t cap, const sm_proto_header *hdr,

@@ -57,12 +57,12 @@ size_t sm_error_payload(uint8_t *out, uint32_t retry, uint32_t detail, const cha
   return 12 + ml;
 }
 
-sm_wbuf *sm_error_frame(uint8_t opcode, uint32_t rid, uint16_t status, uint32_t retry,
-                        uint32_t detail, const char *msg) {
+sm_wbuf *sm_error_frame(uint8_t version, uint8_t opcode, uint32_t rid, uint16_t status,
+                        uint32_t retry, uint32_t detail, const char *msg) {
   sm_wbuf *w = sm_wbuf_new(SM_PROTO_HEADER_LEN + 12 + SM_PROTO_MAX_MSG);
   if (!w) return NULL;
   size_t pl = sm_error_payload(w->data + SM_PROTO_HEADER_LEN, retry, detail, msg);
-  sm_proto_header h = {SM_PROTO_VERSION, opcode, SM_PROTO_F_RESPONSE, rid, status, (uint32_t)pl};
+  sm_proto_header h = {version, opcode, SM_PROTO_F_RESPONSE, rid, status, (uint32_t)pl};
   sm_proto_write_header(w->data, &h);
   w->len = SM_PROTO_HEADER_LEN + pl;
   return w;
@@ -83,7 +83,7 @@ sm_conn *sm_conn_new(sm_server *s, int fd, int kind, const char *peer) {
   c->id = ++s->next_conn_id;
   snprintf(c->peer, sizeof c->peer, "%s", peer);
   c->limit = SM_PROTO_HELLO_MAX_PAYLOAD;
-  c->version = SM_PROTO_VERSION;
+  c->version = SM_PROTO_VERSION_HELLO;
   c->last_active_ns = sm_srv_now_ns();
   c->next = s->conns;
   if (s->conns) s->conns->prev = c;
@@ -171,7 +171,7 @@ static void queue_frame(sm_server *s, sm_conn *c, sm_wbuf *w) {
 void sm_conn_send_error(sm_server *s, sm_conn *c, uint8_t opcode, uint32_t rid,
                         uint16_t status, uint32_t retry, uint32_t detail, const char *msg) {
   sm_met_add(&sm_met.errors, 1);
-  queue_frame(s, c, sm_error_frame(opcode, rid, status, retry, detail, msg));
+  queue_frame(s, c, sm_error_frame(c->version, opcode, rid, status, retry, detail, msg));
 }
 
 void sm_conn_fatal(sm_server *s, sm_conn *c, uint16_t status, uint32_t rid, uint32_t retry,
@@ -180,7 +180,7 @@ void sm_conn_fatal(sm_server *s, sm_conn *c, uint16_t status, uint32_t rid, uint
   sm_met_add(&sm_met.fatal_errors, 1);
   sm_log("warn", "connection-fatal error", " conn=%llu peer=%s status=%s rid=%u detail=%u",
          (unsigned long long)c->id, c->peer, sm_proto_status_name(status), rid, detail);
-  queue_frame(s, c, sm_error_frame(SM_OP_GOAWAY, rid, status, retry, detail, msg));
+  queue_frame(s, c, sm_error_frame(c->version, SM_OP_GOAWAY, rid, status, retry, detail, msg));
   leave_active(s, c);
   c->state = SM_CONN_FLUSH_CLOSE;
   sm_conn_cancel_all(c, 1);
@@ -192,7 +192,7 @@ void sm_conn_fatal(sm_server *s, sm_conn *c, uint16_t status, uint32_t rid, uint
 void sm_conn_goaway(sm_server *s, sm_conn *c) {
   if (c->state != SM_CONN_OPEN || c->goaway_sent || c->kind != SM_H_CONN) return;
   c->goaway_sent = 1;
-  queue_frame(s, c, sm_error_frame(SM_OP_GOAWAY, 0, SM_ST_OK, 1000, s->cfg.drain_ms,
+  queue_frame(s, c, sm_error_frame(c->version, SM_OP_GOAWAY, 0, SM_ST_OK, 1000, s->cfg.drain_ms,
                                    "server shutting down"));
 }
 
@@ -294,7 +294,8 @@ static void on_hello(sm_server *s, sm_conn *c, const sm_proto_frame *f) {
                            cfg->max_inflight, cfg->max_batch_items, cfg->max_query_k,
                            cfg->max_k, cfg->idle_timeout_ms,
                            cfg->has_token ? SM_HELLO_F_AUTH_REQUIRED : 0};
-  sm_proto_header h = {SM_PROTO_VERSION, SM_OP_HELLO, SM_PROTO_F_RESPONSE, f->h.request_id, 0, 0};
+  sm_proto_header h = {SM_PROTO_VERSION_HELLO, SM_OP_HELLO, SM_PROTO_F_RESPONSE, f->h.request_id,
+                       0, 0};
   sm_wbuf *w = sm_wbuf_new(SM_PROTO_HEADER_LEN + 40 + 4);
   if (w) send_ok(s, c, w, sm_proto_enc_hello_resp(w->data, w->len, &h, &o));
   c->hello_done = 1;
@@ -306,7 +307,7 @@ static void on_hello(sm_server *s, sm_conn *c, const sm_proto_frame *f) {
 static void on_stats(sm_server *s, sm_conn *c, const sm_proto_frame *f) {
   sm_proto_stat st[64];
   sm_proto_stats_resp o = {st, NULL, sm_met_stats(s->store, st, 64)};
-  sm_proto_header h = {SM_PROTO_VERSION, SM_OP_STATS, SM_PROTO_F_RESPONSE, f->h.request_id, 0, 0};
+  sm_proto_header h = {c->version, SM_OP_STATS, SM_PROTO_F_RESPONSE, f->h.request_id, 0, 0};
   sm_wbuf *w = sm_wbuf_new(SM_PROTO_HEADER_LEN + 8 + 32 * 64 + 4);
   if (w) send_ok(s, c, w, sm_proto_enc_stats_resp(w->data, w->len, &h, &o));
 }
@@ -347,6 +348,7 @@ static void submit_job(sm_server *s, sm_conn *c, const sm_proto_frame *f, size_t
   j->conn = c;
   j->rid = rid;
   j->opcode = f->h.opcode;
+  j->version = c->version;
   j->max_response = c->max_response;
   j->recv_ns = sm_srv_now_ns();
   int rc = sm_pool_submit(s->pool, &j->base);
@@ -377,6 +379,12 @@ static int on_frame(sm_server *s, sm_conn *c, const sm_proto_frame *f, size_t fr
   if (!c->hello_done) {
     if (op != SM_OP_HELLO) {
       sm_conn_fatal(s, c, SM_ST_PROTOCOL_ERROR, rid, 0, 0, "HELLO must be the first frame");
+      return 0;
+    }
+    if (f->h.version != SM_PROTO_VERSION_HELLO) { /* PROTOCOL.md 5.1: parseable by every server */
+      sm_conn_fatal(s, c, SM_ST_UNSUPPORTED_VERSION, rid, 0,
+                    SM_PROTO_VERSION_MIN | (uint32_t)SM_PROTO_VERSION_MAX << 16,
+                    "HELLO must carry header version 1");
       return 0;
     }
     sm_met_add(&sm_met.requests, 1);

@@ -55,7 +55,7 @@ typedef struct sm_conn {
   sm_wbuf *wq_head, *wq_tail;
   size_t wq_bytes;
   int hello_done;
-  uint8_t version;
+  uint8_t version;       /* of every frame: SM_PROTO_VERSION_HELLO, then the negotiated one */
   uint32_t limit;        /* current max payload */
   uint32_t max_response; /* client's limit, 0 = none */
   int goaway_sent;
@@ -71,6 +71,7 @@ struct sm_job {
   sm_conn *conn;    /* loop thread only */
   uint32_t rid;
   uint8_t opcode;
+  uint8_t version;  /* the connection's negotiated version: response layouts and headers */
   uint32_t max_response;
   uint8_t *buf;     /* owned: holds the frame or the body */
   const uint8_t *body;
@@ -118,8 +119,8 @@ void sm_conn_send_error(sm_server *s, sm_conn *c, uint8_t opcode, uint32_t rid,
 
 /* Error payload (PROTOCOL.md 4) into out (12 + msg bytes, msg truncated to 1024). */
 size_t sm_error_payload(uint8_t *out, uint32_t retry, uint32_t detail, const char *msg);
-/* A complete error frame. */
-sm_wbuf *sm_error_frame(uint8_t opcode, uint32_t rid, uint16_t status, uint32_t retry,
-                        uint32_t detail, const char *msg);
+/* A complete error frame with header version `version` (the connection's). */
+sm_wbuf *sm_error_frame(uint8_t version, uint8_t opcode, uint32_t rid, uint16_t status,
+                        uint32_t retry, uint32_t detail, const char *msg);
 
 #endif

@@ -299,7 +299,8 @@ static int op_match(sm_job *j, uint8_t opcode, const uint8_t *p, size_t n, resul
     uint32_t nx = (uint32_t)x->mesh->n_input;
     uint32_t ny = (q.flags & SM_MATCH_F_WANT_YX) ? (uint32_t)y->mesh->n_input : 0;
     uint32_t kC = (q.flags & SM_MATCH_F_WANT_FMAP) ? (uint32_t)mr.kC : 0;
-    uint64_t need = 112 + 4ull * (nx + ny) + 8ull * kC * kC;
+    int has_conf = j->version >= SM_PROTO_VERSION_CONFIDENCE;
+    uint64_t need = 112 + 4ull * (nx + ny) + 8ull * kC * kC + (has_conf ? 8 : 0);
     int32_t *mxy = malloc((size_t)nx * 4 + 4), *myx = malloc((size_t)ny * 4 + 4);
     if (j->max_response && need > j->max_response)
       rc = fail(r, SM_ST_RESPONSE_TOO_LARGE, need > UINT32_MAX ? UINT32_MAX : (uint32_t)need,
@@ -307,6 +308,13 @@ static int op_match(sm_job *j, uint8_t opcode, const uint8_t *p, size_t n, resul
                 (unsigned long long)need, j->max_response);
     else if (need > UINT32_MAX - 64 || !mxy || !myx || !room(r, (size_t)need))
       rc = fail(r, SM_ST_INTERNAL, 0, "out of memory");
+    else if (has_conf && !(mr.confidence >= 0 && mr.confidence <= 1)) { /* NaN fails too */
+      /* a core bug, not the client's: the wire refuses such a value (PROTOCOL.md 5.7) */
+      sm_log("error", "match confidence out of range", " rid=%u confidence=%g", j->rid,
+             mr.confidence);
+      rc = fail(r, SM_ST_INTERNAL, 0, "MATCH: the map's confidence %g is not in [0, 1]",
+                mr.confidence);
+    }
     if (!rc) {
       sm_match_to_input(x, y, mr.T, mxy);
       if (ny) sm_match_to_input(y, x, mr.T_yx, myx);
@@ -316,6 +324,7 @@ static int op_match(sm_job *j, uint8_t opcode, const uint8_t *p, size_t n, resul
       o.flags = (mr.flipped ? SM_MATCH_R_FLIPPED : 0) | (want_dist ? SM_MATCH_R_HAS_DISTANCE : 0);
       o.orientation = mr.orientation;
       o.dirichlet = mr.dirichlet;
+      o.confidence = mr.confidence;
       if (want_dist) o.dist = pd;
       o.t_prepare_us = prep_us(&c.ix) + prep_us(&c.iy);
       o.t_init_us = s_to_us(mr.t_init);
@@ -329,7 +338,7 @@ static int op_match(sm_job *j, uint8_t opcode, const uint8_t *p, size_t n, resul
       o.kC = (uint16_t)kC;
       o.fmap.v = mr.C;
       o.fmap.count = kC * kC;
-      ptrdiff_t w = sm_proto_enc_match_resp(r->payload, r->len, NULL, &o);
+      ptrdiff_t w = sm_proto_enc_match_resp(r->payload, r->len, NULL, j->version, &o);
       if (w != (ptrdiff_t)need) rc = fail(r, SM_ST_INTERNAL, 0, "MATCH: encoder returned %td", w);
     }
     free(mxy);
@@ -383,6 +392,7 @@ static void unit_job(sm_job *uj, sm_job *parent) {
   uj->srv = parent->srv;
   uj->rid = parent->rid;
   uj->opcode = parent->opcode;
+  uj->version = parent->version;
   uj->max_response = parent->max_response;
   uj->recv_ns = parent->recv_ns;
   uj->deadline_ns = parent->deadline_ns;
@@ -803,11 +813,11 @@ static sm_wbuf *result_frame(sm_job *j, uint8_t opcode, result *r) {
   if (r->status) {
     sm_met_add(&sm_met.errors, 1);
     if (r->status == SM_ST_CANCELLED) sm_met_add(&sm_met.cancelled, 1);
-    return sm_error_frame(opcode, j->rid, r->status, r->retry, r->detail, r->msg);
+    return sm_error_frame(j->version, opcode, j->rid, r->status, r->retry, r->detail, r->msg);
   }
   sm_wbuf *w = sm_wbuf_new(SM_PROTO_HEADER_LEN + r->len);
-  if (!w) return sm_error_frame(opcode, j->rid, SM_ST_INTERNAL, 0, 0, "out of memory");
-  sm_proto_header h = {SM_PROTO_VERSION, opcode, SM_PROTO_F_RESPONSE, j->rid, 0, (uint32_t)r->len};
+  if (!w) return sm_error_frame(j->version, opcode, j->rid, SM_ST_INTERNAL, 0, 0, "out of memory");
+  sm_proto_header h = {j->version, opcode, SM_PROTO_F_RESPONSE, j->rid, 0, (uint32_t)r->len};
   sm_proto_write_header(w->data, &h);
   memcpy(w->data + SM_PROTO_HEADER_LEN, r->payload, r->len);
   return w;
@@ -877,7 +887,7 @@ static void batch_unit(void *vc, uint32_t idx, sm_job *uj) {
     ip.payload = errp;
   }
   if (!ir.status) atomic_fetch_add(&b->n_ok, 1);
-  sm_proto_header h = {SM_PROTO_VERSION, SM_OP_BATCH, SM_PROTO_F_RESPONSE, uj->rid, ir.status, 0};
+  sm_proto_header h = {uj->version, SM_OP_BATCH, SM_PROTO_F_RESPONSE, uj->rid, ir.status, 0};
   size_t cap = SM_PROTO_HEADER_LEN + 8 + ip.len + 4;
   sm_wbuf *w = sm_wbuf_new(cap);
   if (w) {
@@ -900,7 +910,7 @@ static void batch_finish(void *vc) {
   uint64_t t0 = b->t0;
   free(b->items);
   free(b);
-  sm_proto_header h = {SM_PROTO_VERSION, SM_OP_BATCH, SM_PROTO_F_RESPONSE, j->rid, 0, 0};
+  sm_proto_header h = {j->version, SM_OP_BATCH, SM_PROTO_F_RESPONSE, j->rid, 0, 0};
   sm_wbuf *w = sm_wbuf_new(SM_PROTO_HEADER_LEN + 8);
   if (w) sm_proto_enc_batch_done(w->data, w->len, &h, &d);
   sm_met_latency((sm_srv_now_ns() - t0) / 1000);

@@ -4,11 +4,14 @@
  * Part 1, no server: argument validation, address parsing, ids.
  * Part 2, scripted peer: each case forks; the child plays the server over a socketpair with
  *   sm_proto (decodes what the client sent, checks every field, answers), the parent runs
- *   the client. The child's failed checks come back as its exit status.
+ *   the client. The child's failed checks come back as its exit status. The peer chooses
+ *   protocol version 1 (no MATCH confidence) except in the "version 2" case, which also
+ *   sends a confidence outside [0, 1] that the client must refuse.
  * Part 3, only with SM_SERVER_BIN and SM_CLI_BIN (tests/CMakeLists.txt defines them when
  *   the shapematchd target exists): starts the daemon on --port 0 with a temporary data
  *   directory and runs the real CLI (put, match, distance, batch, stats) against it,
- *   comparing with --local. Skipped, with a message, when the daemon does not come up.
+ *   comparing with --local; match --json and batch --maps carry a confidence in [0, 1].
+ *   Skipped, with a message, when the daemon does not come up.
  */
 #include <errno.h>
 #include <fcntl.h>
@@ -175,17 +178,20 @@ static int expect(peer *p, uint8_t op, sm_proto_frame *f) {
 static const uint8_t k_token[] = "s3cret";
 static uint8_t k_affinity[32];
 
-static void srv_hello(peer *p, uint32_t max_inflight) {
+/* Answers the client's HELLO (which offers every version it speaks) choosing `version`. */
+static void srv_hello_v(peer *p, uint32_t max_inflight, uint16_t version) {
   sm_proto_frame f;
   sm_proto_hello_req m;
   if (!expect(p, SM_OP_HELLO, &f)) exit(1);
   CHECK(f.h.version == 1);
   REQUIRE(sm_proto_dec_hello_req(f.body, f.body_len, &m) == 0);
-  CHECK(m.min_version == 1 && m.max_version == 1);
-  sm_proto_hello_resp r = {1, 1 << 28, 1000000, 2000000, max_inflight, 64, 100, 300, 0, 0};
+  CHECK(m.min_version == 1 && m.max_version == 2);
+  sm_proto_hello_resp r = {version, 1 << 28, 1000000, 2000000, max_inflight, 64, 100, 300, 0, 0};
   sm_proto_header h = resp_hdr(f.h.request_id);
   SEND(p, sm_proto_enc_hello_resp(g_out, sizeof g_out, &h, &r));
 }
+/* A server of protocol version 1 only, as before version 2 existed. */
+static void srv_hello(peer *p, uint32_t max_inflight) { srv_hello_v(p, max_inflight, 1); }
 
 typedef void (*srv_fn)(peer *p, void *ud);
 typedef void (*cli_fn)(int fd, void *ud);
@@ -237,7 +243,7 @@ static void srv_basic(peer *p, void *ud) {
   sm_proto_hello_req hr;
   REQUIRE(expect(p, SM_OP_HELLO, &f));
   REQUIRE(sm_proto_dec_hello_req(f.body, f.body_len, &hr) == 0);
-  CHECK(hr.min_version == 1 && hr.max_version == 1 && hr.max_response == 1u << 26);
+  CHECK(hr.min_version == 1 && hr.max_version == 2 && hr.max_response == 1u << 26);
   CHECK(hr.token_len == 6 && !memcmp(hr.token, "s3cret", 6));
   CHECK(!memcmp(hr.affinity, k_affinity, 32));
   sm_proto_hello_resp r = {1, 1 << 28, 1000000, 2000000, 8, 64, 100, 300, 60000, 0};
@@ -370,7 +376,7 @@ static void srv_match(peer *p, void *ud) {
   r.kC = 2;
   r.fmap = (sm_proto_f64s){C, NULL, 4};
   sm_proto_header h = resp_hdr(f.h.request_id);
-  SEND(p, sm_proto_enc_match_resp(g_out, sizeof g_out, &h, &r));
+  SEND(p, sm_proto_enc_match_resp(g_out, sizeof g_out, &h, 1, &r));
 
   /* defaults: everything 0, no flags; answered NOT_FOUND (request-level) */
   REQUIRE(expect(p, SM_OP_DISTANCE, &f));
@@ -470,6 +476,7 @@ static void cli_match(int fd, void *ud) {
     CHECK(r.nx == 5 && r.ny == 3 && r.kC == 2 && r.init_used == 1 && r.flipped && r.has_distance);
     CHECK(r.map_xy[0] == 4 && r.map_xy[2] == -1 && r.map_yx[2] == 2 && r.fmap[3] == -1);
     CHECK(r.orientation == 0.5 && r.dirichlet == 7.25 && r.dist.total == 0.25 && r.dist.spectrum_elastic == -1);
+    CHECK(!r.has_confidence && isnan(r.confidence)); /* a version 1 server has none */
     CHECK_NEAR(r.t_init, 1.5, 1e-12);
     CHECK_NEAR(r.t_total, 2.0, 1e-12);
   }
@@ -630,6 +637,88 @@ static void cli_batch(int fd, void *ud) {
   sm_client_close(c);
 }
 
+/* ---- case: version 2: MATCH's confidence, single and batched; one outside [0, 1] is a
+ * malformed answer that closes the connection ---- */
+static void srv_match_resp_v2(peer *p, const sm_proto_frame *f, double confidence) {
+  sm_proto_match_req m;
+  REQUIRE(sm_proto_dec_match_req(SM_OP_MATCH, f->body, f->body_len, &m) == 0);
+  int32_t xy[2] = {1, 0};
+  sm_proto_match_resp r;
+  memset(&r, 0, sizeof r);
+  r.init_used = 2;
+  r.orientation = 0.75;
+  r.confidence = confidence;
+  r.map_xy = (sm_proto_i32s){xy, NULL, 2};
+  sm_proto_header h = resp_hdr(f->h.request_id);
+  h.version = 2;
+  SEND(p, sm_proto_enc_match_resp(g_out, sizeof g_out, &h, 2, &r));
+}
+
+static void srv_v2(peer *p, void *ud) {
+  (void)ud;
+  sm_proto_frame f;
+  srv_hello_v(p, 4, 2);
+  REQUIRE(expect(p, SM_OP_MATCH, &f));
+  CHECK(f.h.version == 2); /* every frame after HELLO carries the negotiated version */
+  srv_match_resp_v2(p, &f, 0.8125);
+  REQUIRE(expect(p, SM_OP_MATCH, &f)); /* the batch of one */
+  CHECK(f.h.version == 2);
+  srv_match_resp_v2(p, &f, 1.0);
+  /* a confidence of 1.5: written over a valid answer, since the encoder refuses it */
+  REQUIRE(expect(p, SM_OP_MATCH, &f));
+  int32_t xy[2] = {1, 0};
+  sm_proto_match_resp r;
+  memset(&r, 0, sizeof r);
+  r.init_used = 2;
+  r.confidence = 0.5;
+  r.map_xy = (sm_proto_i32s){xy, NULL, 2};
+  sm_proto_header h = resp_hdr(f.h.request_id);
+  h.version = 2;
+  ptrdiff_t n = sm_proto_enc_match_resp(g_out, sizeof g_out, &h, 2, &r);
+  REQUIRE(n == 24 + 112 + 8 + 8);
+  double bad = 1.5;
+  uint64_t u;
+  memcpy(&u, &bad, 8);
+  for (int i = 0; i < 8; i++) g_out[n - 8 + i] = (uint8_t)(u >> (8 * i));
+  peer_send(p, g_out, n);
+  CHECK(peer_frame(p, &f, 5000) == 2); /* the client hangs up */
+}
+
+static int v2_cb(void *ud, size_t i, const sm_client_req *req, const sm_client_resp *r) {
+  (void)i;
+  (void)req;
+  double *got = ud;
+  *got = !r->code && r->match.has_confidence ? r->match.confidence : -1;
+  return 0;
+}
+
+static void cli_v2(int fd, void *ud) {
+  (void)ud;
+  sm_client *c = connect_fd(fd, 0);
+  REQUIRE(c);
+  CHECK(sm_client_limits(c)->version == 2);
+  sm_client_error e;
+  uint8_t x[32] = {1}, y[32] = {2};
+  sm_client_match_result r;
+  int rc = sm_client_match(c, x, y, NULL, &r, &e);
+  CHECK_MSG(rc == 0, "match: %s", e.msg);
+  if (!rc) CHECK(r.has_confidence && r.confidence == 0.8125 && r.orientation == 0.75 && r.nx == 2);
+  sm_client_match_result_free(&r);
+  sm_client_req q;
+  memset(&q, 0, sizeof q);
+  q.op = SM_OP_MATCH;
+  q.x[0] = 1;
+  q.y[0] = 2;
+  double got = -2;
+  size_t nf = 9;
+  rc = sm_client_batch(c, &q, 1, 1, 0, v2_cb, &got, &nf, &e);
+  CHECK_MSG(rc == 0 && nf == 0 && got == 1.0, "batch: %d %s, confidence %g", rc, e.msg, got);
+  rc = sm_client_match(c, x, y, NULL, &r, &e);
+  CHECK_MSG(rc == SM_CLIENT_EPROTO && strstr(e.msg, "confidence"), "bad confidence: %d %s", rc, e.msg);
+  CHECK(!sm_client_is_open(c));
+  sm_client_close(c);
+}
+
 /* ---- case: a server that sends garbage, one that does not answer ---- */
 static void srv_garbage(peer *p, void *ud) {
   sm_proto_frame f;
@@ -772,6 +861,16 @@ static char *slurp(const char *path, size_t *n) {
   return s;
 }
 
+/* The number after "confidence": in a JSON text: 1 and *v, or 0 (absent, null, not a number). */
+static int json_confidence(const char *s, double *v) {
+  const char *k = s ? strstr(s, "\"confidence\":") : NULL;
+  if (!k) return 0;
+  k += strlen("\"confidence\":");
+  char *end;
+  *v = strtod(k, &end);
+  return end != k;
+}
+
 static void test_daemon(void) {
   char dir[512], cmd[4096], log[600];
   snprintf(dir, sizeof dir, "%s/client_it_XXXXXX", SM_TEST_TMP);
@@ -855,9 +954,32 @@ static void test_daemon(void) {
              dir, cli, pairs[k][0], pairs[k][1], srv, k, k);
     rc = run(cmd);
     CHECK_MSG(rc == 0, "remote match %s %s: exit %d", pairs[k][0], pairs[k][1], rc);
-    snprintf(cmd, sizeof cmd, "cd %s && %s match %s %s --local -o local%d.txt 2>/dev/null", dir, cli,
-             pairs[k][0], pairs[k][1], k);
+    snprintf(cmd, sizeof cmd, "cd %s && %s match %s %s --local -o local%d.txt --json > local%d.json 2>/dev/null",
+             dir, cli, pairs[k][0], pairs[k][1], k, k);
     CHECK(run(cmd) == 0);
+  }
+  /* --json has the map's confidence in [0, 1], from the server (protocol version 2) and
+   * locally; the same floats give the same number */
+  {
+    char pj[700];
+    double conf[2] = {-1, -1};
+    for (int w = 0; w < 2; w++) {
+      snprintf(pj, sizeof pj, "%s/%s0.json", dir, w ? "local" : "remote");
+      char *js = slurp(pj, NULL);
+      CHECK_MSG(json_confidence(js, &conf[w]) && conf[w] >= 0 && conf[w] <= 1,
+                "%s match --json: no confidence in [0, 1]: %s", w ? "local" : "server", js ? js : "");
+      free(js);
+    }
+    CHECK_MSG(fabs(conf[0] - conf[1]) <= 1e-6, "confidence server %g, local %g", conf[0], conf[1]);
+    /* the human-readable line has it too */
+    snprintf(cmd, sizeof cmd, "cd %s && %s match a.drc b.drc --server %s -o human.txt 2> human.err",
+             dir, cli, srv);
+    CHECK(run(cmd) == 0);
+    snprintf(pj, sizeof pj, "%s/human.err", dir);
+    char *he = slurp(pj, NULL);
+    CHECK_MSG(he && (strstr(he, ", confidence 0.") || strstr(he, ", confidence 1.000")),
+              "match stderr: %s", he ? he : "");
+    free(he);
   }
   for (int k = 0; k < 3; k++) {
     char p1[700], p2[700];
@@ -910,6 +1032,16 @@ static void test_daemon(void) {
   int ok = 0, bad = 0;
   for (const char *s = bj; s && (s = strstr(s, "\"ok\":")); s += 5) *(s[5] == 't' ? &ok : &bad) += 1;
   CHECK_MSG(ok == 2 && bad == 1, "batch: %d ok, %d failed: %s", ok, bad, bj ? bj : "");
+  free(bj);
+  /* batch --maps runs MATCH: its lines carry the confidence */
+  snprintf(cmd, sizeof cmd, "cd %s && mkdir -p maps && printf 'a.drc b.drc\\n' > pairs3.txt && "
+           "%s batch pairs3.txt --server %s --maps maps > batch3.json 2> batch3.err", dir, cli, srv);
+  CHECK(run(cmd) == 0);
+  snprintf(p1, sizeof p1, "%s/batch3.json", dir);
+  bj = slurp(p1, NULL);
+  double bconf = -1;
+  CHECK_MSG(bj && strstr(bj, "\"ok\":true") && json_confidence(bj, &bconf) && bconf >= 0 && bconf <= 1,
+            "batch --maps: %s", bj ? bj : "");
   free(bj);
 
   /* a busy server: a batch of 42 distances (8 in flight) and a `put --prepare` of 6 new
@@ -1005,6 +1137,7 @@ int main(void) {
   run_pair("basic", srv_basic, cli_basic, NULL);
   run_pair("match", srv_match, cli_match, NULL);
   run_pair("batch", srv_batch, cli_batch, NULL);
+  run_pair("version 2", srv_v2, cli_v2, NULL);
   int garbage = 0, silent = 1;
   run_pair("garbage", srv_garbage, cli_garbage, &garbage);
   run_pair("silent", srv_garbage, cli_garbage, &silent);

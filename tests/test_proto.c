@@ -9,7 +9,11 @@
  *   - malformed headers rejected from their 24 bytes alone (before the payload exists,
  *     i.e. before a receiver would allocate), with the specific error;
  *   - malformed payloads: every truncation, trailing bytes, counts whose byte size would
- *     overflow 32 bits, out-of-range enums, reserved fields, disallowed opcodes. */
+ *     overflow 32 bits, out-of-range enums, reserved fields, disallowed opcodes;
+ *   - versions: the catalogue's frames after HELLO carry version 2 (SM_PROTO_VERSION_MAX);
+ *     the MATCH response in both layouts (version 1 is version 2 without the trailing
+ *     confidence), each decoder refusing the other's, and a confidence that is NaN or
+ *     outside [0, 1] refused by the encoder and the decoder. */
 #define _DEFAULT_SOURCE /* MAP_ANONYMOUS */
 #include <math.h>
 #include <stdint.h>
@@ -213,6 +217,7 @@ static sm_proto_match_resp m_match_resp(void) {
   m.flags = SM_MATCH_R_FLIPPED | SM_MATCH_R_HAS_DISTANCE;
   m.orientation = 0.93;
   m.dirichlet = 6.8;
+  m.confidence = 0.8125;
   m.dist = (sm_proto_dist){0.05, 0.04, 0.06, 0.02, -1.0};
   m.t_prepare_us = 1;
   m.t_init_us = 2;
@@ -336,6 +341,9 @@ static sm_proto_header hdr_for(int k, uint32_t rid, uint16_t extra_flags) {
   sm_proto_header h = {0};
   h.request_id = rid;
   h.flags = extra_flags;
+  /* HELLO frames are version 1 (0 = the codec's default, which is that); every later
+   * frame carries the negotiated version: here the newest */
+  if (k != K_HELLO_REQ && k != K_HELLO_RESP) h.version = SM_PROTO_VERSION_MAX;
   switch (k) {
   case K_STATS_REQ: h.opcode = SM_OP_STATS; break;
   case K_DROP_RESP: h.opcode = SM_OP_DROP_SHAPE; h.flags |= SM_PROTO_F_RESPONSE; break;
@@ -367,7 +375,8 @@ static ptrdiff_t encode(int k, uint8_t *buf, size_t cap, const sm_proto_header *
   case K_PREP_REQ: return sm_proto_enc_prepare_req(buf, cap, h, &m->prep_req);
   case K_PREP_RESP: return sm_proto_enc_prepare_resp(buf, cap, h, &m->prep_resp);
   case K_MATCH_REQ: return sm_proto_enc_match_req(buf, cap, h, SM_OP_MATCH, &m->match_req);
-  case K_MATCH_RESP: return sm_proto_enc_match_resp(buf, cap, h, &m->match_resp);
+  case K_MATCH_RESP:
+    return sm_proto_enc_match_resp(buf, cap, h, SM_PROTO_VERSION_MAX, &m->match_resp);
   case K_DIST_REQ: return sm_proto_enc_match_req(buf, cap, h, SM_OP_DISTANCE, &m->match_req);
   case K_DIST_RESP: return sm_proto_enc_distance_resp(buf, cap, h, &m->dist_resp);
   case K_QUERY_REQ: return sm_proto_enc_query_req(buf, cap, h, &m->query_req);
@@ -402,7 +411,7 @@ static int decode(int k, const uint8_t *p, size_t n, anymsg *m) {
   case K_PREP_RESP: return sm_proto_dec_prepare_resp(p, n, &m->prep_resp);
   case K_MATCH_REQ: return sm_proto_dec_match_req(SM_OP_MATCH, p, n, &m->match_req);
   case K_DIST_REQ: return sm_proto_dec_match_req(SM_OP_DISTANCE, p, n, &m->match_req);
-  case K_MATCH_RESP: return sm_proto_dec_match_resp(p, n, &m->match_resp);
+  case K_MATCH_RESP: return sm_proto_dec_match_resp(SM_PROTO_VERSION_MAX, p, n, &m->match_resp);
   case K_DIST_RESP: return sm_proto_dec_distance_resp(p, n, &m->dist_resp);
   case K_QUERY_REQ: return sm_proto_dec_query_req(p, n, &m->query_req);
   case K_QUERY_RESP: return sm_proto_dec_query_resp(p, n, &m->query_resp);
@@ -504,7 +513,7 @@ static void compare(int k, const anymsg *A, const anymsg *B) {
   case K_DIST_REQ: eq_match_req(k, &A->match_req, &B->match_req); break;
   case K_MATCH_RESP: {
     const sm_proto_match_resp *a = &A->match_resp, *b = &B->match_resp;
-    EQ(init_used); EQ(flags); EQ(orientation); EQ(dirichlet); EQ(t_prepare_us);
+    EQ(init_used); EQ(flags); EQ(orientation); EQ(dirichlet); EQ(confidence); EQ(t_prepare_us);
     EQ(t_init_us); EQ(t_refine_us); EQ(t_distance_us); EQ(t_total_us); EQ(kC);
     eq_dist(k, &a->dist, &b->dist);
     eq_i32s(k, "map_xy", &a->map_xy, &b->map_xy);
@@ -617,7 +626,8 @@ static void test_roundtrip(void) {
                    k != K_PUT_REQ && k != K_HAS_REQ && k != K_DROP_REQ && k != K_PREP_REQ &&
                    k != K_MATCH_REQ && k != K_DIST_REQ && k != K_QUERY_REQ &&
                    k != K_BATCH_REQ && k != K_CANCEL_REQ;
-        CHECK(f.h.version == SM_PROTO_VERSION);
+        CHECK(f.h.version == (k == K_HELLO_REQ || k == K_HELLO_RESP ? SM_PROTO_VERSION_HELLO
+                                                                     : SM_PROTO_VERSION_MAX));
         CHECK(f.h.request_id == h.request_id);
         CHECK(f.h.status == h.status);
         CHECK(!!(f.h.flags & SM_PROTO_F_RESPONSE) == resp);
@@ -817,13 +827,19 @@ static void test_bad_headers(void) {
     CHECK(sm_proto_parse_header(g.p, 1, LIMIT, NULL) == SM_PROTO_EMAGIC);
     guard_free(&g);
   }
-  /* unknown version */
-  uint8_t versions[] = {0, 2, 255};
+  /* unknown version; every version the codec speaks passes */
+  uint8_t versions[] = {0, SM_PROTO_VERSION_MAX + 1, 255};
   for (int i = 0; i < 3; i++) {
     memcpy(x, good, 24);
     x[4] = versions[i];
     set_crc(x);
     CHECK(parse_hdr24(x, LIMIT) == SM_PROTO_EVERSION);
+  }
+  for (int v = SM_PROTO_VERSION_MIN; v <= SM_PROTO_VERSION_MAX; v++) {
+    memcpy(x, good, 24);
+    x[4] = (uint8_t)v;
+    set_crc(x);
+    CHECK_MSG(parse_hdr24(x, LIMIT) == 24, "version %d", v);
   }
   /* header CRC: every single-bit error in bytes 4..23 is caught */
   for (int bit = 32; bit < 24 * 8; bit++) {
@@ -966,6 +982,18 @@ static void put16(uint8_t *p, uint16_t v) {
   p[0] = (uint8_t)v;
   p[1] = (uint8_t)(v >> 8);
 }
+static void put_f64(uint8_t *p, double d) {
+  uint64_t u;
+  memcpy(&u, &d, 8);
+  for (int i = 0; i < 8; i++) p[i] = (uint8_t)(u >> (8 * i));
+}
+/* sm_proto_dec_match_resp on a guarded copy (an over-read faults) */
+static int dec_match_v(uint8_t version, const uint8_t *b, size_t n, sm_proto_match_resp *m) {
+  guard g = guard_place(b, n);
+  int rc = sm_proto_dec_match_resp(version, g.p, n, m);
+  guard_free(&g);
+  return rc;
+}
 static int dec_guarded(int k, const uint8_t *b, size_t n) {
   anymsg m;
   guard g = guard_place(b, n);
@@ -1027,6 +1055,14 @@ static void test_bad_payloads(void) {
   MUT(K_MATCH_RESP, b[11] = 4, SM_PROTO_EFIELD);
   MUT(K_MATCH_RESP, put32(b + 12, 1), SM_PROTO_EFIELD);
   MUT(K_MATCH_RESP, put32(b + 112, 0xFFFFFFFEu), SM_PROTO_EFIELD); /* map entry -2 */
+  /* confidence: the last 8 bytes of a version 2 MATCH response */
+  MUT(K_MATCH_RESP, put_f64(b + n_ - 8, NAN), SM_PROTO_ECONFIDENCE);
+  MUT(K_MATCH_RESP, put_f64(b + n_ - 8, -0.25), SM_PROTO_ECONFIDENCE);
+  MUT(K_MATCH_RESP, put_f64(b + n_ - 8, 1.0000001), SM_PROTO_ECONFIDENCE);
+  MUT(K_MATCH_RESP, put_f64(b + n_ - 8, INFINITY), SM_PROTO_ECONFIDENCE);
+  MUT(K_MATCH_RESP, put_f64(b + n_ - 8, -INFINITY), SM_PROTO_ECONFIDENCE);
+  MUT(K_MATCH_RESP, put_f64(b + n_ - 8, 0.0), 0); /* both ends are valid */
+  MUT(K_MATCH_RESP, put_f64(b + n_ - 8, 1.0), 0);
   MUT(K_QUERY_REQ, b[34] = 3, SM_PROTO_EFIELD); /* mode */
   MUT(K_QUERY_REQ, put16(b + 32, 0), SM_PROTO_EFIELD); /* k = 0 */
   MUT(K_QUERY_REQ, b[35] = 1, SM_PROTO_EFIELD);
@@ -1066,6 +1102,54 @@ static void test_bad_payloads(void) {
   }
 }
 
+/* ---- MATCH response across versions (PROTOCOL.md 5.7, 7.1) ---- */
+static void test_match_resp_versions(void) {
+  static uint8_t v1[1024], v2[1024], fr[1024];
+  sm_proto_match_resp m = m_match_resp(), d;
+  ptrdiff_t n1 = sm_proto_enc_match_resp(v1, sizeof v1, NULL, 1, &m);
+  ptrdiff_t n2 = sm_proto_enc_match_resp(v2, sizeof v2, NULL, 2, &m);
+  /* version 2 = version 1 + the confidence appended: every version 1 offset holds */
+  REQUIRE(n1 == 112 + 4 * (7 + 5) + 8 * 9 && n2 == n1 + 8);
+  CHECK(memcmp(v1, v2, (size_t)n1) == 0);
+  uint8_t want[8];
+  put_f64(want, 0.8125);
+  CHECK(memcmp(v2 + n1, want, 8) == 0);
+  /* each version's decoder takes its own layout only */
+  CHECK(dec_match_v(1, v1, (size_t)n1, &d) == 0 && isnan(d.confidence) && d.orientation == 0.93 &&
+        d.map_xy.count == 7 && d.fmap.count == 9);
+  CHECK(dec_match_v(2, v2, (size_t)n2, &d) == 0 && d.confidence == 0.8125);
+  CHECK(dec_match_v(2, v1, (size_t)n1, &d) == SM_PROTO_ELENGTH);
+  CHECK(dec_match_v(1, v2, (size_t)n2, &d) == SM_PROTO_ELENGTH);
+  CHECK(dec_match_v(2, v2, 112 + 7, &d) == SM_PROTO_ETRUNC); /* fixed part + confidence */
+  CHECK(dec_match_v(0, v2, (size_t)n2, &d) == SM_PROTO_EVERSION);
+  CHECK(dec_match_v(SM_PROTO_VERSION_MAX + 1, v2, (size_t)n2, &d) == SM_PROTO_EVERSION);
+  /* the frame carries the layout's version */
+  sm_proto_header h = {0};
+  h.request_id = 4;
+  sm_proto_frame f;
+  for (uint8_t v = 1; v <= 2; v++) {
+    ptrdiff_t n = sm_proto_enc_match_resp(fr, sizeof fr, &h, v, &m);
+    CHECK(n == 24 + (v == 1 ? n1 : n2));
+    CHECK(sm_proto_parse_frame(fr, (size_t)n, LIMIT, &f) == n && f.h.version == v);
+  }
+  h.version = 1; /* a header of another version than the layout */
+  CHECK(sm_proto_enc_match_resp(fr, sizeof fr, &h, 2, &m) == SM_PROTO_EINVAL);
+  h.version = 0;
+  CHECK(sm_proto_enc_match_resp(fr, sizeof fr, &h, 0, &m) == SM_PROTO_EINVAL);
+  CHECK(sm_proto_enc_match_resp(fr, sizeof fr, &h, SM_PROTO_VERSION_MAX + 1, &m) == SM_PROTO_EINVAL);
+  /* the encoder refuses a confidence the decoder would; version 1 has none to refuse */
+  const double bad[] = {NAN, -0.25, 1.5, INFINITY};
+  for (int i = 0; i < 4; i++) {
+    m.confidence = bad[i];
+    CHECK_MSG(sm_proto_enc_match_resp(v2, sizeof v2, NULL, 2, &m) == SM_PROTO_EINVAL,
+              "confidence %g encoded", bad[i]);
+    CHECK(sm_proto_enc_match_resp(v1, sizeof v1, NULL, 1, &m) == n1);
+  }
+  /* a request-level error whose message names the field */
+  CHECK(strstr(sm_proto_strerror(SM_PROTO_ECONFIDENCE), "confidence") != NULL);
+  CHECK(!sm_proto_status_is_fatal(sm_proto_status_for_error(SM_PROTO_ECONFIDENCE)));
+}
+
 /* ---- encoders refuse what decoders would reject ---- */
 static void test_encoder_args(void) {
   uint8_t buf[1024];
@@ -1098,6 +1182,18 @@ static void test_encoder_args(void) {
   sm_proto_hello_req hr = m_hello_req();
   hr.token_len = SM_PROTO_MAX_TOKEN + 1;
   CHECK(sm_proto_enc_hello_req(buf, sizeof buf, &h, &hr) == SM_PROTO_EINVAL);
+  /* HELLO frames are version 1 (PROTOCOL.md 5.1); other frames any version spoken */
+  hr = m_hello_req();
+  sm_proto_header h2 = h;
+  h2.version = 2;
+  CHECK(sm_proto_enc_hello_req(buf, sizeof buf, &h2, &hr) == SM_PROTO_EINVAL);
+  sm_proto_hello_resp hs = m_hello_resp();
+  CHECK(sm_proto_enc_hello_resp(buf, sizeof buf, &h2, &hs) == SM_PROTO_EINVAL);
+  h2.version = 1;
+  CHECK(sm_proto_enc_hello_req(buf, sizeof buf, &h2, &hr) > 0);
+  h2.version = SM_PROTO_VERSION_MAX + 1;
+  sm_proto_ping pv = {1};
+  CHECK(sm_proto_enc_ping(buf, sizeof buf, &h2, 0, &pv) == SM_PROTO_EINVAL);
   sm_proto_stat badname[] = {{"Upper", 1}};
   sm_proto_stats_resp sr = {badname, NULL, 1};
   CHECK(sm_proto_enc_stats_resp(buf, sizeof buf, &h, &sr) == SM_PROTO_EINVAL);
@@ -1127,6 +1223,7 @@ int main(void) {
   test_bad_headers();
   test_truncations();
   test_bad_payloads();
+  test_match_resp_versions();
   test_encoder_args();
   for (int i = 0; i < nframes; i++) free(frames[i]);
   free(stream);

@@ -2,7 +2,9 @@
  * with a temporary data directory and talks to it over TCP with the protocol codec:
  * HELLO, PING, STATS, PUT_SHAPE (real Draco files, or synthetic blobs when ../shared/data
  * is absent), HAS/DROP, MATCH (map equal to a local sm_match on the same meshes),
- * DISTANCE, BATCH, CANCEL, a corrupt Draco upload, an oversize frame header, a trickling
+ * DISTANCE, BATCH, CANCEL, protocol versions (a version 1 client gets version 1 layouts, a
+ * version 2 one gets MATCH's confidence, also in BATCH items; HELLO and frame version
+ * rules), a corrupt Draco upload, an oversize frame header, a trickling
  * client (TIMEOUT), an abrupt disconnect mid-request, SIGTERM (exit 0), a restart that
  * loads the bases from disk (nothing recomputed), and a corrupted basis file (detected,
  * recomputed, same result). Every socket read has a timeout; alarm() bounds the whole. */
@@ -92,19 +94,46 @@ static int connect_to(int port) {
   } while (0)
 
 
-static void hello(int fd, sm_proto_hello_resp *out) {
+/* HELLO offering versions lo..hi; the answer must be OK. */
+static void hello_v(int fd, uint16_t lo, uint16_t hi, sm_proto_hello_resp *out) {
   sm_proto_hello_req q;
   memset(&q, 0, sizeof q);
-  q.min_version = q.max_version = 1;
+  q.min_version = lo;
+  q.max_version = hi;
   sm_proto_header h = req_hdr(g_rid++);
   SEND(fd, sm_proto_enc_hello_req(buf, cap, &h, &q));
   frame f;
   REQUIRE(recv_frame(fd, &f) == 0);
   REQUIRE(f.h.status == SM_ST_OK && f.h.opcode == SM_OP_HELLO);
+  CHECK(f.h.version == SM_PROTO_VERSION_HELLO);
   sm_proto_hello_resp r;
   REQUIRE(sm_proto_dec_hello_resp(f.body, f.body_len, &r) == 0);
   if (out) *out = r;
   frame_free(&f);
+}
+
+/* A version 1 client, as every client was before version 2: most of this test speaks it. */
+static void hello(int fd, sm_proto_hello_resp *out) { hello_v(fd, 1, 1, out); }
+
+/* Rewrites a frame's header version (and its CRC): for versions an encoder refuses. */
+static void set_frame_version(uint8_t *fr, uint8_t v) {
+  fr[4] = v;
+  uint32_t c = sm_proto_crc32c(0, fr, 20);
+  for (int i = 0; i < 4; i++) fr[20 + i] = (uint8_t)(c >> (8 * i));
+}
+
+/* The next frame must be a GOAWAY with status st and header version v, then EOF. */
+static void expect_goaway(int fd, uint16_t st, uint8_t v, uint32_t detail) {
+  frame f;
+  REQUIRE(recv_frame(fd, &f) == 0);
+  CHECK_MSG(f.h.opcode == SM_OP_GOAWAY && f.h.status == st && f.h.version == v,
+            "got %s %s version %u", sm_proto_op_name(f.h.opcode), sm_proto_status_name(f.h.status),
+            f.h.version);
+  sm_proto_error e;
+  CHECK(sm_proto_dec_error(f.body, f.body_len, &e) == 0 && e.detail == detail);
+  frame_free(&f);
+  uint8_t b;
+  CHECK(recv(fd, &b, 1, 0) == 0); /* closed */
 }
 
 static int ping(int fd, uint64_t v) {
@@ -195,21 +224,26 @@ static void match_req(sm_proto_match_req *q, const shape *x, const shape *y, uin
   q->k1 = K;
 }
 
-/* MATCH; returns status; *map (malloc'd, nx entries) and *dist. */
-static uint16_t do_match(int fd, const shape *x, const shape *y, int32_t **map, uint32_t *nx,
-                         sm_proto_dist *dist, uint64_t *t_prepare) {
+/* MATCH on a connection of protocol version `version`; returns status; *map (malloc'd, nx
+ * entries), *dist and *confidence (NaN: version 1 has none; may be NULL). */
+static uint16_t do_match(int fd, uint8_t version, const shape *x, const shape *y, int32_t **map,
+                         uint32_t *nx, sm_proto_dist *dist, uint64_t *t_prepare,
+                         double *confidence) {
   sm_proto_match_req q;
   match_req(&q, x, y, SM_MATCH_F_WANT_YX | SM_MATCH_F_WANT_DISTANCE | SM_MATCH_F_SINGLE_START);
   uint32_t rid = g_rid++;
   sm_proto_header h = req_hdr(rid);
+  h.version = version;
   SEND(fd, sm_proto_enc_match_req(buf, cap, &h, SM_OP_MATCH, &q));
   frame f;
   REQUIRE(recv_frame(fd, &f) == 0);
   CHECK(f.h.request_id == rid);
+  CHECK(f.h.version == version);
   uint16_t st = f.h.status;
   if (!st) {
     sm_proto_match_resp r;
-    REQUIRE(sm_proto_dec_match_resp(f.body, f.body_len, &r) == 0);
+    REQUIRE(sm_proto_dec_match_resp(version, f.body, f.body_len, &r) == 0);
+    if (confidence) *confidence = r.confidence;
     *nx = r.map_xy.count;
     *map = malloc((size_t)r.map_xy.count * 4 + 4);
     for (uint32_t i = 0; i < r.map_xy.count; i++) (*map)[i] = sm_proto_i32_at(&r.map_xy, i);
@@ -265,7 +299,8 @@ static int load_shapes(shape *x, shape *y) {
 }
 
 /* The reference: the same pipeline locally (bases k = K, SINGLE_START, want_yx). */
-static void local_match(const shape *x, const shape *y, int32_t **map, sm_distance_parts *d) {
+static void local_match(const shape *x, const shape *y, int32_t **map, sm_distance_parts *d,
+                        double *confidence) {
   sm_shape_opts so;
   sm_shape_opts_default(&so);
   so.k_lb = so.k_elastic = K;
@@ -280,6 +315,7 @@ static void local_match(const shape *x, const shape *y, int32_t **map, sm_distan
   mo.want_yx = 1;
   sm_match_result r;
   REQUIRE(sm_match(sx, sy, &mo, &r, &err) == 0);
+  *confidence = r.confidence;
   *map = malloc((size_t)sx->mesh->n_input * 4);
   sm_match_to_input(sx, sy, r.T, *map);
   REQUIRE(sm_shape_distance(sx, sy, r.T, r.T_yx, d, &err) == 0);
@@ -333,7 +369,8 @@ int main(void) {
           x.mesh->nv, y.mesh->nv);
   int32_t *ref_map = NULL;
   sm_distance_parts ref_d;
-  local_match(&x, &y, &ref_map, &ref_d);
+  double ref_conf;
+  local_match(&x, &y, &ref_map, &ref_d, &ref_conf);
 
   /* ---------------- run 1 */
   int port = start_daemon("--metrics-port 0");
@@ -376,7 +413,9 @@ int main(void) {
   uint32_t nx = 0;
   sm_proto_dist dist;
   uint64_t t_prep = 0;
-  CHECK(do_match(fd, &x, &y, &map, &nx, &dist, &t_prep) == SM_ST_OK);
+  double conf = 0;
+  CHECK(do_match(fd, 1, &x, &y, &map, &nx, &dist, &t_prep, &conf) == SM_ST_OK);
+  CHECK(isnan(conf)); /* a version 1 answer has no confidence: 112 + arrays, exactly */
   CHECK(nx == (uint32_t)x.mesh->nv);
   if (map && nx == (uint32_t)x.mesh->nv) CHECK(maps_equal(map, ref_map, nx));
   CHECK_NEAR(dist.total, ref_d.total, 1e-12);
@@ -453,6 +492,88 @@ int main(void) {
     }
     CHECK(n_items == 4 && seen[0] == 1 && seen[1] == 1 && seen[2] == 1 && seen[3] == 1);
     CHECK(sts[0] == 0 && sts[1] == 0 && sts[2] == SM_ST_NOT_FOUND && sts[3] == 0);
+  }
+
+  /* Protocol version 2 on a second connection: the same MATCH, plus its confidence in
+   * [0, 1], in the frames of version 2; a BATCH MATCH item carries it too. */
+  {
+    int fd2 = connect_to(port);
+    sm_proto_hello_resp hr2;
+    hello_v(fd2, 1, SM_PROTO_VERSION_MAX, &hr2);
+    CHECK(hr2.version == 2);
+    double c2 = -1;
+    CHECK(do_match(fd2, 2, &x, &y, &map, &nx, &dist, NULL, &c2) == SM_ST_OK);
+    CHECK_MSG(c2 >= 0 && c2 <= 1, "confidence %g", c2);
+    CHECK_MSG(c2 == ref_conf, "confidence %.17g, local sm_match %.17g", c2, ref_conf);
+    if (map && nx == (uint32_t)x.mesh->nv) CHECK(maps_equal(map, ref_map, nx));
+    CHECK_NEAR(dist.total, ref_d.total, 1e-12);
+    free(map);
+    map = NULL;
+
+    uint8_t mbuf[256];
+    sm_proto_match_req mq;
+    match_req(&mq, &x, &y, SM_MATCH_F_WANT_YX | SM_MATCH_F_WANT_DISTANCE | SM_MATCH_F_SINGLE_START);
+    ptrdiff_t ml = sm_proto_enc_match_req(mbuf, sizeof mbuf, NULL, SM_OP_MATCH, &mq);
+    REQUIRE(ml > 0);
+    sm_proto_batch_item items[1] = {{SM_OP_MATCH, mbuf, (uint32_t)ml}};
+    sm_proto_batch_req bq;
+    memset(&bq, 0, sizeof bq);
+    bq.v = items;
+    bq.count = 1;
+    sm_proto_header h = req_hdr(g_rid++);
+    h.version = 2;
+    SEND(fd2, sm_proto_enc_batch_req(buf, cap, &h, &bq));
+    frame f;
+    REQUIRE(recv_frame(fd2, &f) == 0);
+    CHECK(f.h.version == 2 && f.h.status == 0 && (f.h.flags & SM_PROTO_F_MORE));
+    sm_proto_batch_item_resp ir;
+    sm_proto_match_resp r;
+    if (f.h.status == 0 && sm_proto_dec_batch_item_resp(f.body, f.body_len, &ir) == 0) {
+      CHECK(ir.opcode == SM_OP_MATCH && ir.index == 0);
+      CHECK(sm_proto_dec_match_resp(1, ir.payload, ir.len, &r) == SM_PROTO_ELENGTH);
+      CHECK(sm_proto_dec_match_resp(2, ir.payload, ir.len, &r) == 0);
+      CHECK(r.confidence == c2); /* the same request as do_match's: the same map */
+    } else {
+      CHECK_MSG(0, "BATCH item: status %s", sm_proto_status_name(f.h.status));
+    }
+    frame_free(&f);
+    REQUIRE(recv_frame(fd2, &f) == 0);
+    CHECK(f.h.version == 2 && !(f.h.flags & SM_PROTO_F_MORE) && f.h.status == 0);
+    frame_free(&f);
+
+    /* a frame of another version than the negotiated one is fatal, in version 2 */
+    sm_proto_ping pg = {3};
+    h = req_hdr(g_rid++);
+    h.version = 1;
+    SEND(fd2, sm_proto_enc_ping(buf, cap, &h, 0, &pg));
+    expect_goaway(fd2, SM_ST_UNSUPPORTED_VERSION, 2, 1u | 2u << 16);
+    close(fd2);
+
+    /* HELLO must carry header version 1; a range without a common version is refused */
+    fd2 = connect_to(port);
+    sm_proto_hello_req q;
+    memset(&q, 0, sizeof q);
+    q.min_version = 1;
+    q.max_version = 2;
+    h = req_hdr(g_rid++);
+    uint8_t raw[SM_PROTO_HEADER_LEN + 44];
+    REQUIRE(sm_proto_enc_hello_req(raw, sizeof raw, &h, &q) == (ptrdiff_t)sizeof raw);
+    set_frame_version(raw, 2);
+    REQUIRE(send_all(fd2, raw, sizeof raw) == 0);
+    expect_goaway(fd2, SM_ST_UNSUPPORTED_VERSION, 1, 1u | 2u << 16);
+    close(fd2);
+    fd2 = connect_to(port);
+    q.min_version = q.max_version = 3;
+    REQUIRE(sm_proto_enc_hello_req(raw, sizeof raw, &h, &q) == (ptrdiff_t)sizeof raw);
+    REQUIRE(send_all(fd2, raw, sizeof raw) == 0);
+    expect_goaway(fd2, SM_ST_UNSUPPORTED_VERSION, 1, 1u | 2u << 16);
+    close(fd2);
+    /* a client of version 2 only */
+    fd2 = connect_to(port);
+    hello_v(fd2, 2, 2, &hr2);
+    CHECK(hr2.version == 2);
+    close(fd2);
+    CHECK(ping(fd, 4) == 0); /* the version 1 connection is unaffected */
   }
 
   /* Single-flight: two pipelined PREPAREs of the same new variant (2 workers) compute it
@@ -621,7 +742,7 @@ int main(void) {
   CHECK(stat_of(fd, "shapes") == 2);
   uint32_t hf = has(fd, x.id);
   CHECK((hf & SM_HAS_STORED) && (hf & SM_HAS_PREPARED));
-  CHECK(do_match(fd, &x, &y, &map, &nx, &dist, NULL) == SM_ST_OK);
+  CHECK(do_match(fd, 1, &x, &y, &map, &nx, &dist, NULL, NULL) == SM_ST_OK);
   if (map && nx == (uint32_t)x.mesh->nv) CHECK(maps_equal(map, ref_map, nx));
   CHECK_NEAR(dist.total, ref_d.total, 1e-12);
   free(map);
@@ -649,7 +770,7 @@ int main(void) {
   REQUIRE(port > 0);
   fd = connect_to(port);
   hello(fd, NULL);
-  CHECK(do_match(fd, &x, &y, &map, &nx, &dist, NULL) == SM_ST_OK);
+  CHECK(do_match(fd, 1, &x, &y, &map, &nx, &dist, NULL, NULL) == SM_ST_OK);
   if (map && nx == (uint32_t)x.mesh->nv) CHECK(maps_equal(map, ref_map, nx));
   CHECK_NEAR(dist.total, ref_d.total, 1e-12);
   free(map);

@@ -178,7 +178,7 @@ static int verify_ok(const req *r, const frame *f, uint32_t rid) {
   }
   case R_MATCH: {
     sm_proto_match_resp m;
-    if (sm_proto_dec_match_resp(f->body, f->body_len, &m) ||
+    if (sm_proto_dec_match_resp(1, f->body, f->body_len, &m) || /* hello_tok offers 1 only */
         m.map_xy.count != (uint32_t)r->a->mesh->nv || !(m.flags & SM_MATCH_R_HAS_DISTANCE) ||
         m.map_yx.count != (uint32_t)r->b->mesh->nv) {
       fprintf(stderr, "  MATCH rid %u: bad response layout\n", rid);
