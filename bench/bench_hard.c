@@ -54,7 +54,7 @@ typedef struct hard_pair {
   /* results */
   int ok;
   char error[1200];
-  double err_mean, err_max, confidence, orientation, t_init, t_refine, t_total;
+  double err_mean, err_max, confidence, orientation, continuity, cycle, t_init, t_refine, t_total;
   int flipped, hypothesis;
 } hard_pair;
 
@@ -267,9 +267,9 @@ static void analyze(const hard_pair *p, const loaded *L, const sm_shape *sx,
   }
   double t = sm_now() - t0;
   for (int i = 0; i < nh; i++)
-    printf("HYP %s %s %2d err %.4f resid %.4f cycle %.4f cover %.3f orient %+.3f desc %.4f dir %.4f\n", p->set,
+    if (h[i].T) printf("HYP %s %s %2d err %.4f resid %.4f cycle %.4f cover %.3f orient %+.3f desc %.4f E %.4f\n", p->set,
            p->name, i, map_error(L, sx, sy, h[i].T, &err), h[i].residual, h[i].cycle,
-           h[i].coverage, h[i].orientation, h[i].desc, h[i].dirichlet);
+           h[i].coverage, h[i].orientation, h[i].desc, h[i].energy);
   printf("HYPTIME %s %.3f\n", p->name, t);
   sm_global_free(h, nh);
 }
@@ -311,6 +311,8 @@ static int run_pair(const bench_cfg *c, hard_pair *p, sm_error *err) {
     p->err_max = gs.max;
     p->confidence = r.confidence;
     p->orientation = r.orientation;
+    p->continuity = r.continuity;
+    p->cycle = r.cycle;
     p->t_init = r.t_init;
     p->t_refine = r.t_refine;
     p->flipped = r.flipped;
@@ -349,9 +351,10 @@ static void *worker(void *arg) {
     if (!p->ok) snprintf(p->error, sizeof p->error, "%s", err.msg);
     pthread_mutex_lock(&w->lock);
     if (p->ok)
-      printf("%-9s %-28s err %.4f  max %.3f  conf %.3f  orient %+.2f  hyp %2d%s  "
+      printf("%-9s %-28s err %.4f  max %.3f  conf %.3f  orient %+.2f cont %.3f cyc %.3f  hyp %2d%s  "
              "init %.2f s  refine %.2f s  total %.2f s\n",
              p->set, p->name, p->err_mean, p->err_max, p->confidence, p->orientation,
+             p->continuity, p->cycle,
              p->hypothesis, p->flipped ? " flip" : "", p->t_init, p->t_refine, p->t_total);
     else
       printf("%-9s %-28s FAILED: %s\n", p->set, p->name, p->error);
@@ -440,6 +443,8 @@ static void write_json(const char *path, const bench_cfg *c, const hard_pair *P,
       jnum(f, "err_max", p->err_max, 1);
       jnum(f, "confidence", p->confidence, 1);
       jnum(f, "orientation", p->orientation, 1);
+      jnum(f, "continuity", p->continuity, 1);
+      jnum(f, "cycle", p->cycle, 1);
       fprintf(f, "\"hypothesis\": %d, \"flipped\": %d, ", p->hypothesis, p->flipped);
       jnum(f, "t_init", p->t_init, 1);
       jnum(f, "t_refine", p->t_refine, 1);

@@ -12,8 +12,10 @@
  *            (e.g. the descriptor-based one of sm_coarse);
  *   refine   each start by ZoomOut in the LB basis on farthest-point samples of both shapes
  *            (k from k_signs + 1 to k_end): a few hundred points, milliseconds per start;
- *   score    each refined hypothesis by quantities a correct map makes small, all computed
- *            from the shapes and the maps alone (see sm_global_hyp).
+ *   score    each refined hypothesis by descriptor preservation on the samples; the few
+ *            best (and the caller's first start) get their full-resolution map, and the
+ *            winner minimizes desc * (2 - orientation): the descriptors cannot tell a
+ *            start from its mirror image, the orientation score can (sm_global_hyp).
  *
  * Contract: meshes (cleaned, unit area) and LB bases (orthonormal, gram_L == NULL) are
  * borrowed, read only. sm_global_search allocates the hypothesis array (*out, *n_out),
@@ -36,6 +38,7 @@ typedef struct sm_global_opts {
   int permute;  /* also every ordering of those functions (k_signs! 2^k_signs starts) */
   int k_end;    /* LB functions at the end of each start's ZoomOut */
   int step;     /* ZoomOut k increment */
+  int finalists; /* starts (lowest descriptor error) whose full map and energy are computed */
   /* Extra starts: n_extra coarse maps (k_extra x k_extra each, column-major, the sm_fmap
    * convention), tried first, in order. */
   const double *const *extra;
@@ -54,16 +57,16 @@ typedef struct sm_global_side {
 } sm_global_side;
 
 typedef struct sm_global_hyp {
-  int32_t *T;          /* n_X: the hypothesis as a point map X -> Y (onto Y's samples) */
+  int32_t *T;          /* n_X: the full point map X -> Y of a finalist, else NULL */
   double residual;     /* mean |a_i - b_T(i)|^2 of the samples in the final embedding,
                           divided by the mean |a_i|^2: how well C aligns the two shapes */
   double cycle;        /* mean distance (unit area) from an X sample to its image's image
                           under the adjoint map Y -> X: bijectivity */
   double coverage;     /* fraction of Y's sample mass hit by the X samples */
-  double orientation;  /* sm_map_orientation_score of T: +1 direct, -1 mirrored */
-  double desc;         /* mass-weighted mean |d_X(i) - d_Y(T(i))|^2 / mean |d_X|^2 */
-  double dirichlet;    /* Dirichlet energy of T / that of the identity on X */
-  double energy;       /* the score the search ranks by (lower is better) */
+  double orientation;  /* sm_map_orientation_score of T (finalists): +1 direct, -1 mirror */
+  double desc;         /* over X's samples, mass-weighted mean |d_X(i) - d_Y(T(i))|^2 /
+                          mean |d_X|^2 (descriptor preservation) */
+  double energy;       /* desc * (2 - orientation) for finalists, +inf otherwise */
 } sm_global_hyp;
 
 int sm_global_search(const sm_global_side *x, const sm_global_side *y,

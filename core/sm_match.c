@@ -8,9 +8,11 @@
 #include <string.h>
 
 #include "sm_coarse.h"
+#include "sm_confidence.h"
 #include "sm_desc.h"
 #include "sm_eigs.h"
 #include "sm_fmap.h"
+#include "sm_global.h"
 #include "sm_metrics.h"
 #include "sm_shell.h"
 #include "sm_sinkhorn.h"
@@ -451,6 +453,33 @@ static int refine(const sm_shape *x, const sm_shape *y, const sm_match_opts *o, 
   return sm_zoomout(pairs, np, &zo, T, T, Cs, T_yx, NULL, err);
 }
 
+/* The global search (sm_global.h): the descriptor coarse map C0 and the sign starts of
+ * the low LB functions, each refined on samples; the winner's map is the initial map. */
+static int global_start(const sm_shape *x, const sm_shape *y, const sm_match_opts *o,
+                        const double *C0, sm_match_result *r, sm_error *err) {
+  sm_global_opts go;
+  sm_global_opts_default(&go);
+  const double *extra[1] = {C0};
+  go.extra = extra;
+  go.n_extra = 1;
+  go.k_extra = o->coarse_k;
+  if (go.k_end < o->coarse_k) go.k_end = o->coarse_k;
+  go.permute = o->global > 1;
+  go.k_signs = o->global > 1 ? 3 : 4;
+  go.cancel = o->cancel;
+  go.cancel_ud = o->cancel_ud;
+  sm_global_side gx = {x->mesh, x->lb, x->desc, x->n_desc}, gy = {y->mesh, y->lb, y->desc, y->n_desc};
+  sm_global_hyp *h = NULL;
+  int nh = 0;
+  int rc = sm_global_search(&gx, &gy, &go, &h, &nh, err);
+  if (rc) return rc;
+  int b = sm_global_best(h, nh);
+  memcpy(r->T, h[b].T, (size_t)r->nx * sizeof *r->T);
+  r->hypothesis = b;
+  sm_global_free(h, nh);
+  return SM_OK;
+}
+
 /* One full attempt: orientation-preserving coarse map, initial map, refinement. */
 static int attempt(const sm_shape *x, const sm_shape *y, const sm_match_opts *o,
                    sm_match_result *r, sm_error *err) {
@@ -463,7 +492,8 @@ static int attempt(const sm_shape *x, const sm_shape *y, const sm_match_opts *o,
     double *C0 = malloc((size_t)k * k * sizeof *C0);
     if (!C0) return sm_error_set(err, SM_ENOMEM, "match: out of memory");
     rc = coarse_map(x, y, o, +1, C0, err);
-    if (!rc) rc = initial_map(x, y, o, C0, r->T, err);
+    if (!rc && o->global) rc = global_start(x, y, o, C0, r, err);
+    else if (!rc) rc = initial_map(x, y, o, C0, r->T, err);
     free(C0);
   }
   if (!rc) r->init_distinct = sm_plan_map_distinct(r->T, r->nx, r->ny);
@@ -631,10 +661,31 @@ static int multi_start(const sm_shape *x, const sm_shape *y, const sm_match_opts
   return rc;
 }
 
-int sm_match(const sm_shape *x, const sm_shape *y, const sm_match_opts *o,
-             sm_match_result *res, sm_error *err) {
-  int rc = check_opts(x, y, o, err);
+/* The confidence of the final map (sm_confidence.h); needs T_yx, which the final ZoomOut
+ * iteration computes in the same pass as T, so it is always computed and dropped here when
+ * the caller did not ask for it. */
+static int finish(const sm_shape *x, const sm_shape *y, int want_yx, sm_match_result *res,
+                  sm_error *err) {
+  sm_confidence c;
+  int rc = sm_map_confidence(x->mesh, y->mesh, x->lb->mass, res->T, res->T_yx, &c, err);
   if (rc) return rc;
+  res->confidence = c.confidence;
+  res->continuity = c.continuity;
+  res->cycle = c.cycle;
+  if (!want_yx) {
+    free(res->T_yx);
+    res->T_yx = NULL;
+  }
+  return SM_OK;
+}
+
+int sm_match(const sm_shape *x, const sm_shape *y, const sm_match_opts *opts,
+             sm_match_result *res, sm_error *err) {
+  int rc = check_opts(x, y, opts, err);
+  if (rc) return rc;
+  sm_match_opts oi = *opts;
+  const sm_match_opts *o = &oi;
+  oi.want_yx = 1;
   if (result_alloc(res, x, y, o)) {
     sm_match_result_free(res);
     return sm_error_set(err, SM_ENOMEM, "match: out of memory");
@@ -643,6 +694,7 @@ int sm_match(const sm_shape *x, const sm_shape *y, const sm_match_opts *o,
   else rc = attempt(x, y, o, res, err);
   if (!rc && o->orientation_fix && !o->init_map && res->orientation < 0)
     rc = fix_orientation(x, y, o, res, err);
+  if (!rc) rc = finish(x, y, opts->want_yx, res, err);
   if (rc) sm_match_result_free(res);
   return rc;
 }

@@ -99,7 +99,8 @@ typedef struct sm_match_result {
   int flipped;              /* 1 if the orientation fix replaced the first result */
   int init_used;            /* enum sm_match_init of the start that produced T */
   double dirichlet;         /* Dirichlet energy of T (cotan weights of X, unit area) */
-  double confidence;        /* in [0, 1]: how much the map can be trusted (see above) */
+  double confidence;        /* in [0, 1]: how far T can be trusted (sm_confidence.h): */
+  double continuity, cycle; /* its factors besides the orientation */
   int hypothesis;           /* index of the global search's winning start (0 = descriptors) */
   double t_init, t_refine;  /* seconds */
 } sm_match_result;
