@@ -13,6 +13,13 @@
  *     with a seam where the map jumps, which the Dirichlet energy sees (homer A -> B:
  *     6.8 for the right map, 59-77 for maps with a swapped limb; no ground truth used).
  *
+ *   global (option, off by default; sm_global.h): before the refinement, the descriptor
+ *     coarse map and the sign starts of the low LB functions are each refined on samples
+ *     and the winner of an intrinsic energy becomes the initial map. Off because, measured
+ *     with bench_hard, it did not beat the single start on average (docs/RESULTS.md 6).
+ *   confidence (every result; sm_confidence.h): max(0, orientation) x continuity x cycle
+ *     consistency of the final maps, in [0, 1], from the shapes and maps alone.
+ *
  * Contract
  *   sm_shape_prepare copies what it needs from the input mesh (borrowed) and returns a
  *   shape owned by the caller (sm_shape_destroy). Shapes are read only afterwards (except
@@ -79,7 +86,7 @@ typedef struct sm_match_opts {
   int samples;      /* farthest-point samples for intermediate refinement iterations */
   int orientation_fix; /* try the other orientation when the result looks mirrored */
   int multi_start;  /* also refine from the other init, keep the smoother map (see below) */
-  int global;       /* global hypothesis search before the refinement (see above) */
+  int global;       /* 1: global hypothesis search (see above); 2: also orderings */
   const int32_t *landmarks; /* nlandmarks pairs (x, y), cleaned indices; may be NULL */
   int nlandmarks;
   const int32_t *init_map;  /* optional initial map X -> Y (cleaned indices): skips init */
