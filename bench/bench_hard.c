@@ -15,11 +15,12 @@
  *
  * Bases are computed once per shape (k = 100, the product's default) and cached in --cache
  * DIR. Pairs run on --threads worker threads (one pair per thread, one BLAS thread each).
- * Options of the match: --multi-start (the exhaustive mode), --global 0 (the old single
- * start), --k1 K.
+ * Options of the match (default: the product's defaults): --multi-start, --global 1 (the
+ * opt-in global search of sm_global.h; 2 adds orderings), --k1 K; --analyze prints every start of the global search
+ * with its true error instead of matching (design data, never used by the product).
  *
  * Usage: bench_hard [--sets a,b] [--cache DIR] [--threads N] [--json OUT] [--limit N]
- *                   [--global 0|1] [--multi-start] [--k1 K] [--verbose]
+ *                   [--global 0|1|2] [--multi-start] [--k1 K] [--analyze]
  * Exit: 0, 1 on a failure, 77 when ../shared/data is absent.
  */
 #define _POSIX_C_SOURCE 200809L
@@ -60,23 +61,10 @@ typedef struct hard_pair {
 
 typedef struct bench_cfg {
   const char *cache;
-  int global, multi_start, k1, verbose, analyze;
+  int global, multi_start, k1, analyze;
 } bench_cfg;
 
 /* ---- shapes, with their bases cached on disk ----------------------------------------- */
-
-static int cached_basis(const sm_mesh *m, int kind, const char *path, sm_basis **b,
-                        sm_error *err) {
-  if (sm_basis_load(path, b, NULL) == SM_OK) {
-    if ((*b)->mesh_hash == sm_mesh_hash(m) && (*b)->k == K_BASIS) return SM_OK;
-    sm_basis_destroy(*b);
-  }
-  sm_basis_opts bo;
-  sm_basis_opts_default(&bo, kind, K_BASIS);
-  int rc = sm_basis_compute(m, &bo, b, err);
-  if (!rc) rc = sm_basis_save(*b, path, err);
-  return rc;
-}
 
 /* The stem names the cache files: the mesh file's name plus a tag (permuted copies). */
 static int prepare(const sm_mesh *raw, const char *cache, const char *stem, sm_shape **out,
@@ -84,12 +72,13 @@ static int prepare(const sm_mesh *raw, const char *cache, const char *stem, sm_s
   sm_mesh *m = NULL;
   sm_basis *lb = NULL, *el = NULL;
   char path[4096];
+  int cached;
   int rc = sm_mesh_clean(raw, NULL, &m, NULL, err);
   if (!rc) rc = sm_mesh_normalize(m, err);
   snprintf(path, sizeof path, "%s/%s.lb.k%d.smb", cache, stem, K_BASIS);
-  if (!rc) rc = cached_basis(m, SM_BASIS_LB, path, &lb, err);
+  if (!rc) rc = bench_cached_basis(m, SM_BASIS_LB, K_BASIS, path, &lb, &cached, err);
   snprintf(path, sizeof path, "%s/%s.el.k%d.smb", cache, stem, K_BASIS);
-  if (!rc) rc = cached_basis(m, SM_BASIS_ELASTIC, path, &el, err);
+  if (!rc) rc = bench_cached_basis(m, SM_BASIS_ELASTIC, K_BASIS, path, &el, &cached, err);
   if (rc) {
     sm_mesh_destroy(m);
     sm_basis_destroy(lb);
@@ -153,52 +142,12 @@ static int has_set(const char *sets, const char *name) {
 
 /* ---- one pair ----------------------------------------------------------------------- */
 
-typedef struct loaded {
-  sm_mesh *rawx, *rawy;
-  sm_gt *gt;
-  int32_t *perm, *inv;
-} loaded;
-
-static int load_classic(const pair_spec *ps, loaded *L, sm_error *err) {
-  char src[4096], tgt[4096], gtp[4096];
-  data_path(src, sizeof src, ps->src);
-  data_path(tgt, sizeof tgt, ps->tgt);
-  if (ps->gt) data_path(gtp, sizeof gtp, ps->gt);
-  sm_mesh *y = NULL;
-  int rc = sm_mesh_read_file(src, NULL, &L->rawx, err);
-  if (!rc) rc = sm_mesh_read_file(tgt, NULL, &y, err);
-  if (!rc && ps->permute_target) {
-    L->perm = malloc((size_t)y->nv * sizeof *L->perm);
-    L->inv = malloc((size_t)y->nv * sizeof *L->inv);
-    if (!L->perm || !L->inv) rc = sm_error_set(err, SM_ENOMEM, "permutation");
-    if (!rc) make_permutation(y->nv, PERM_SEED, L->perm, L->inv);
-    if (!rc) rc = permute_mesh(y, L->perm, L->inv, &L->rawy, err);
-    sm_mesh_destroy(y);
-  } else if (!rc) {
-    L->rawy = y;
-  }
-  if (!rc && ps->gt) rc = sm_gt_load_dense(gtp, 0, L->rawx->nv, L->rawy->nv, &L->gt, err);
-  if (!rc && !ps->gt) {
-    rc = sm_gt_identity(L->rawx->nv, &L->gt, err);
-    if (!rc && L->perm) rc = sm_gt_remap_target(L->gt, L->inv, L->rawy->nv, err);
-  }
-  return rc;
-}
-
-static int load_listed(const hard_pair *p, loaded *L, sm_error *err) {
+static int load_listed(const hard_pair *p, bench_raw_pair *L, sm_error *err) {
   int rc = sm_mesh_read_file(p->src, NULL, &L->rawx, err);
   if (!rc) rc = sm_mesh_read_file(p->tgt, NULL, &L->rawy, err);
   if (!rc)
     rc = sm_gt_load_vts(p->gt_src, p->gt_tgt, 1, L->rawx->nv, L->rawy->nv, &L->gt, err);
   return rc;
-}
-
-static void loaded_free(loaded *L) {
-  sm_mesh_destroy(L->rawx);
-  sm_mesh_destroy(L->rawy);
-  sm_gt_destroy(L->gt);
-  free(L->perm);
-  free(L->inv);
 }
 
 static void stems(const hard_pair *p, char *sx, char *sy, size_t n) {
@@ -221,7 +170,7 @@ static void match_options(const bench_cfg *c, sm_match_opts *o) {
 
 /* --analyze: every start of the global search, its intrinsic scores and its true error
  * (the data the search's energy is designed from; never used by the product). */
-static double map_error(const loaded *L, const sm_shape *sx, const sm_shape *sy,
+static double map_error(const bench_raw_pair *L, const sm_shape *sx, const sm_shape *sy,
                         const int32_t *T, sm_error *err) {
   int32_t *map = malloc((size_t)L->rawx->nv * sizeof *map);
   double *e = malloc((size_t)L->gt->n * sizeof *e), mean = NAN;
@@ -239,7 +188,7 @@ static double map_error(const loaded *L, const sm_shape *sx, const sm_shape *sy,
   return mean;
 }
 
-static void analyze(const hard_pair *p, const loaded *L, const sm_shape *sx,
+static void analyze(const hard_pair *p, const bench_raw_pair *L, const sm_shape *sx,
                     const sm_shape *sy) {
   sm_error err = {0};
   sm_coarse_opts co;
@@ -275,19 +224,19 @@ static void analyze(const hard_pair *p, const loaded *L, const sm_shape *sx,
 }
 
 static int run_pair(const bench_cfg *c, hard_pair *p, sm_error *err) {
-  loaded L = {0};
+  bench_raw_pair L = {0};
   sm_shape *sx = NULL, *sy = NULL;
   sm_match_result r = {0};
-  char stx[256], sty[256];
+  char stx[1100], sty[1100];
   stems(p, stx, sty, sizeof stx);
-  int rc = p->classic >= 0 ? load_classic(&PAIRS[p->classic], &L, err) : load_listed(p, &L, err);
+  int rc = p->classic >= 0 ? bench_load_raw_pair(&PAIRS[p->classic], &L, err) : load_listed(p, &L, err);
   if (!rc) rc = prepare(L.rawx, c->cache, stx, &sx, err);
   if (!rc) rc = prepare(L.rawy, c->cache, sty, &sy, err);
   if (!rc && c->analyze) {
     analyze(p, &L, sx, sy);
     sm_shape_destroy(sx);
     sm_shape_destroy(sy);
-    loaded_free(&L);
+    bench_raw_pair_free(&L);
     return SM_OK;
   }
   sm_match_opts o;
@@ -323,7 +272,7 @@ static int run_pair(const bench_cfg *c, hard_pair *p, sm_error *err) {
   sm_match_result_free(&r);
   sm_shape_destroy(sx);
   sm_shape_destroy(sy);
-  loaded_free(&L);
+  bench_raw_pair_free(&L);
   return rc;
 }
 
@@ -479,7 +428,7 @@ static void write_json(const char *path, const bench_cfg *c, const hard_pair *P,
 static void usage(void) {
   fprintf(stderr, "usage: bench_hard [--sets gorilla,manwoman,within,classic] [--cache DIR] "
                   "[--threads N] [--json OUT] [--limit N] [--global 0|1] [--multi-start] "
-                  "[--k1 K]\n");
+                  "[--k1 K] [--analyze]\n");
 }
 
 int main(int argc, char **argv) {
@@ -497,7 +446,6 @@ int main(int argc, char **argv) {
     else if (!strcmp(a, "--global") && v) cfg.global = atoi(argv[++i]);
     else if (!strcmp(a, "--k1") && v) cfg.k1 = atoi(argv[++i]);
     else if (!strcmp(a, "--multi-start")) cfg.multi_start = 1;
-    else if (!strcmp(a, "--verbose")) cfg.verbose = 1;
     else if (!strcmp(a, "--analyze")) cfg.analyze = 1;
     else {
       usage();

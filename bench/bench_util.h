@@ -12,7 +12,10 @@
 #include <string.h>
 #include <unistd.h>
 
+#include "sm_basis.h"
 #include "sm_mesh.h"
+#include "sm_meshio.h"
+#include "sm_metrics.h"
 
 #define PERM_SEED 0x5eed2024u
 
@@ -115,5 +118,70 @@ static inline void jstr(FILE *f, const char *s) {
   fputc('"', f);
 }
 
+
+/* The meshes of a pair_spec as read (the target permuted when the spec asks) and its GT in
+ * that numbering. Returns 77 when a file is absent (no ../shared/data). */
+typedef struct bench_raw_pair {
+  sm_mesh *rawx, *rawy;
+  sm_gt *gt;
+  int32_t *perm, *inv; /* the target's permutation, or NULL */
+} bench_raw_pair;
+
+static inline void bench_raw_pair_free(bench_raw_pair *p) {
+  sm_mesh_destroy(p->rawx);
+  sm_mesh_destroy(p->rawy);
+  sm_gt_destroy(p->gt);
+  free(p->perm);
+  free(p->inv);
+  memset(p, 0, sizeof *p);
+}
+
+static inline int bench_load_raw_pair(const pair_spec *ps, bench_raw_pair *p, sm_error *err) {
+  char src[4096], tgt[4096], gtp[4096];
+  memset(p, 0, sizeof *p);
+  data_path(src, sizeof src, ps->src);
+  data_path(tgt, sizeof tgt, ps->tgt);
+  if (ps->gt) data_path(gtp, sizeof gtp, ps->gt);
+  if (!file_exists(src) || !file_exists(tgt) || (ps->gt && !file_exists(gtp))) return 77;
+  sm_mesh *y = NULL;
+  int rc = sm_mesh_read_file(src, NULL, &p->rawx, err);
+  if (!rc) rc = sm_mesh_read_file(tgt, NULL, &y, err);
+  if (!rc && ps->permute_target) {
+    p->perm = malloc((size_t)y->nv * sizeof *p->perm);
+    p->inv = malloc((size_t)y->nv * sizeof *p->inv);
+    if (!p->perm || !p->inv) rc = sm_error_set(err, SM_ENOMEM, "permutation");
+    if (!rc) make_permutation(y->nv, PERM_SEED, p->perm, p->inv);
+    if (!rc) rc = permute_mesh(y, p->perm, p->inv, &p->rawy, err);
+    sm_mesh_destroy(y);
+  } else if (!rc) {
+    p->rawy = y;
+  }
+  if (!rc && ps->gt) rc = sm_gt_load_dense(gtp, 0, p->rawx->nv, p->rawy->nv, &p->gt, err);
+  if (!rc && !ps->gt) {
+    rc = sm_gt_identity(p->rawx->nv, &p->gt, err);
+    if (!rc && p->perm) rc = sm_gt_remap_target(p->gt, p->inv, p->rawy->nv, err);
+  }
+  if (rc) bench_raw_pair_free(p);
+  return rc;
+}
+
+/* A basis of m from the cache file path when it was computed on this mesh with k
+ * functions, else computed (default options) and saved there; *cached says which. */
+static inline int bench_cached_basis(const sm_mesh *m, int kind, int k, const char *path,
+                                     sm_basis **b, int *cached, sm_error *err) {
+  if (sm_basis_load(path, b, NULL) == SM_OK) {
+    if ((*b)->mesh_hash == sm_mesh_hash(m) && (*b)->k == k) {
+      *cached = 1;
+      return SM_OK;
+    }
+    sm_basis_destroy(*b);
+  }
+  sm_basis_opts bo;
+  sm_basis_opts_default(&bo, kind, k);
+  int rc = sm_basis_compute(m, &bo, b, err);
+  if (!rc) rc = sm_basis_save(*b, path, err);
+  *cached = 0;
+  return rc;
+}
 
 #endif

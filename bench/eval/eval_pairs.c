@@ -71,23 +71,6 @@ typedef struct pair_data {
 
 /* ---- shapes with cached bases -------------------------------------------------------- */
 
-static int load_or_compute(const sm_mesh *m, int kind, int k, const char *path, sm_basis **b,
-                           int *cached, sm_error *err) {
-  if (sm_basis_load(path, b, NULL) == SM_OK) {
-    if ((*b)->mesh_hash == sm_mesh_hash(m) && (*b)->k == k) {
-      *cached = 1;
-      return SM_OK;
-    }
-    sm_basis_destroy(*b); /* another mesh or size: recompute */
-  }
-  sm_basis_opts bo;
-  sm_basis_opts_default(&bo, kind, k);
-  int rc = sm_basis_compute(m, &bo, b, err);
-  if (!rc) rc = sm_basis_save(*b, path, err);
-  *cached = 0;
-  return rc;
-}
-
 /* Like sm_shape_prepare (clean, unit area, both bases), with the bases cached and the
  * descriptors taken from the first DESC_K LB functions. */
 static int prepare_shape(const sm_mesh *raw, int k, const char *cache, const char *stem,
@@ -99,9 +82,9 @@ static int prepare_shape(const sm_mesh *raw, int k, const char *cache, const cha
   int rc = sm_mesh_clean(raw, NULL, &m, NULL, err);
   if (!rc) rc = sm_mesh_normalize(m, err);
   snprintf(path, sizeof path, "%s/%s.lb.k%d.smb", cache, stem, k);
-  if (!rc) rc = load_or_compute(m, SM_BASIS_LB, k, path, &lb, &c1, err);
+  if (!rc) rc = bench_cached_basis(m, SM_BASIS_LB, k, path, &lb, &c1, err);
   snprintf(path, sizeof path, "%s/%s.el.k%d.smb", cache, stem, k);
-  if (!rc) rc = load_or_compute(m, SM_BASIS_ELASTIC, k, path, &el, &c2, err);
+  if (!rc) rc = bench_cached_basis(m, SM_BASIS_ELASTIC, k, path, &el, &c2, err);
   if (rc) {
     sm_mesh_destroy(m);
     sm_basis_destroy(lb);
@@ -119,29 +102,14 @@ static int prepare_shape(const sm_mesh *raw, int k, const char *cache, const cha
 
 static int load_pair(const pair_spec *ps, int kbasis, const char *cache, pair_data *pd,
                      sm_error *err) {
-  char src[4096], tgt[4096], gtp[4096];
-  data_path(src, sizeof src, ps->src);
-  data_path(tgt, sizeof tgt, ps->tgt);
-  if (ps->gt) data_path(gtp, sizeof gtp, ps->gt);
-  if (!file_exists(src) || !file_exists(tgt) || (ps->gt && !file_exists(gtp))) return 77;
-  sm_mesh *rawy_file = NULL;
-  int rc = sm_mesh_read_file(src, NULL, &pd->rawx, err);
-  if (!rc) rc = sm_mesh_read_file(tgt, NULL, &rawy_file, err);
-  if (!rc && ps->permute_target) {
-    pd->perm = malloc((size_t)rawy_file->nv * sizeof *pd->perm);
-    pd->inv = malloc((size_t)rawy_file->nv * sizeof *pd->inv);
-    if (!pd->perm || !pd->inv) rc = sm_error_set(err, SM_ENOMEM, "permutation");
-    if (!rc) make_permutation(rawy_file->nv, PERM_SEED, pd->perm, pd->inv);
-    if (!rc) rc = permute_mesh(rawy_file, pd->perm, pd->inv, &pd->rawy, err);
-    sm_mesh_destroy(rawy_file);
-  } else if (!rc) {
-    pd->rawy = rawy_file;
-  }
-  if (!rc && ps->gt) rc = sm_gt_load_dense(gtp, 0, pd->rawx->nv, pd->rawy->nv, &pd->gt, err);
-  if (!rc && !ps->gt) {
-    rc = sm_gt_identity(pd->rawx->nv, &pd->gt, err);
-    if (!rc && pd->perm) rc = sm_gt_remap_target(pd->gt, pd->inv, pd->rawy->nv, err);
-  }
+  bench_raw_pair raw;
+  int rc = bench_load_raw_pair(ps, &raw, err);
+  if (rc) return rc;
+  pd->rawx = raw.rawx;
+  pd->rawy = raw.rawy;
+  pd->gt = raw.gt;
+  pd->perm = raw.perm;
+  pd->inv = raw.inv;
   const sm_mesh *raws[2] = {pd->rawx, pd->rawy};
   sm_shape **shapes[2] = {&pd->sx, &pd->sy};
   for (int s = 0; s < 2 && !rc; s++) {
