@@ -50,6 +50,8 @@ void sm_srv_config_default(sm_srv_config *c) {
   c->queue_len = 1024;
   c->metrics_port = 0;
   c->default_k = 100;
+  c->prepare_timeout_ms = 300000;
+  c->max_components = 64;
 }
 
 static void on_signal(int sig) {
@@ -66,6 +68,7 @@ static void usage(FILE *f) {
           "                   [--idle-timeout-ms MS] [--drain-ms MS] [--max-vertices N]\n"
           "                   [--max-faces N] [--max-k K] [--default-k K]\n"
           "                   [--max-batch-items N] [--max-query-k N]\n"
+          "                   [--prepare-timeout-ms MS] [--max-components N]\n"
           "  --config FILE reads 'key = value' lines, the keys being the long flags without\n"
           "    '--' (port = 7878, data-dir = /var/lib/shapematch, ...); '#' starts a comment;\n"
           "    an unknown key or a bad value is an error naming the line; flags given on the\n"
@@ -73,6 +76,11 @@ static void usage(FILE *f) {
           "  --port 0 picks a free port (logged as msg=listening port=N);\n"
           "  --data-dir defaults to $XDG_STATE_HOME/shapematch or ~/.local/state/shapematch;\n"
           "  --default-k sets the default basis size and MATCH k1 (default 100, >= 20);\n"
+          "  --prepare-timeout-ms bounds the preparation (cleaning, bases, descriptors) of\n"
+          "    one shape (default 300000; 0 = none): past it the request fails with\n"
+          "    LIMIT_EXCEEDED naming the shape;\n"
+          "  --max-components: PUT_SHAPE refuses a mesh with more connected components after\n"
+          "    cleaning (default 64; each component needs its own rigid modes);\n"
           "  --token may also come from $SHAPEMATCH_TOKEN (keeps it out of ps), or from the\n"
           "    first line of --token-file.\n");
 }
@@ -155,6 +163,8 @@ static int apply_opt(const char *key, const char *v, sm_srv_config *c, const cha
   NUM("default-k", 20, 65535, c->default_k)
   NUM("max-batch-items", 1, 1000000, c->max_batch_items)
   NUM("max-query-k", 1, 65535, c->max_query_k)
+  NUM("prepare-timeout-ms", 0, 86400000, c->prepare_timeout_ms)
+  NUM("max-components", 1, 1000000, c->max_components)
   else {
     if (src->file) fprintf(stderr, "shapematchd: %s:%d: unknown key '%s'\n", src->file, src->line, key);
     else fprintf(stderr, "shapematchd: unknown flag --%s\n", key);
@@ -306,6 +316,7 @@ int main(int argc, char **argv) {
            sm_log_q(s.cfg.data_dir, q, sizeof q), sm_log_q(err.msg, (char[300]){0}, 300));
     return 1;
   }
+  sm_store_set_max_components(s.store, s.cfg.max_components);
   sm_store_stats ss;
   sm_store_get_stats(s.store, &ss);
   sm_log("info", "store opened", " dir=%s shapes=%llu bytes=%llu corrupt_deleted=%llu ms=%llu",

@@ -46,6 +46,8 @@ typedef struct sm_srv_config {
   int queue_len;            /* bounded job queue; full = BUSY */
   int metrics_port;         /* 0 = off */
   int default_k;            /* server default basis size (PROTOCOL.md: 100) */
+  uint32_t prepare_timeout_ms; /* bound on one shape's preparation; 0 = none */
+  uint32_t max_components;  /* PUT refuses meshes with more connected components */
   uint8_t token[256];
   size_t token_len;
   int has_token;

@@ -82,6 +82,63 @@ static int fail_core(result *r, sm_job *j, int code, const sm_error *err, const 
 
 static uint64_t s_to_us(double s) { return s > 0 ? (uint64_t)(s * 1e6) : 0; }
 
+/* ------------------------------------------------------------------ preparation */
+
+/* The preparation bound (--prepare-timeout-ms) on top of the request's own cancel and
+ * deadline: acquiring a shape may compute its bases, or wait for the worker that does,
+ * and no single shape may hold a worker past the bound, whatever the client asked. */
+typedef struct prep_guard {
+  sm_job *j;
+  uint64_t until_ns; /* 0 = unbounded */
+  int hit;
+} prep_guard;
+
+static int prep_cancel_cb(void *ud) {
+  prep_guard *g = ud;
+  if (cancel_cb(g->j)) return 1;
+  if (g->until_ns && sm_srv_now_ns() > g->until_ns) {
+    g->hit = 1;
+    return 1;
+  }
+  return 0;
+}
+
+/* A failed preparation as a status whose message names the shape: not stored (or found
+ * damaged) = NOT_FOUND with detail nf_detail; past the bound = LIMIT_EXCEEDED; a shape the
+ * solvers cannot handle = MESH_REJECTED; a k the shape is too small for = BAD_REQUEST. */
+static int fail_prepare(result *r, sm_job *j, int rc, const sm_error *err, const char *what,
+                        const uint8_t id[32], uint32_t nf_detail, const prep_guard *g) {
+  char hex[65];
+  sm_hex(id, 32, hex);
+  const char *msg = err->msg[0] ? err->msg : sm_strerror(rc);
+  uint32_t bound = j->srv->cfg.prepare_timeout_ms;
+  if (rc == SM_STORE_ENOTFOUND)
+    return fail(r, SM_ST_NOT_FOUND, nf_detail, "%s: shape %s: %s", what, hex, msg);
+  if (rc == SM_ECANCELED && g->hit)
+    return fail(r, SM_ST_LIMIT_EXCEEDED, bound,
+                "%s: shape %s: preparation stopped at the daemon's bound of %u ms "
+                "(--prepare-timeout-ms)", what, hex, bound);
+  if (rc == SM_ENUMERIC || rc == SM_EUNSUPPORTED || rc == SM_EEMPTY || rc == SM_EFORMAT)
+    return fail(r, SM_ST_MESH_REJECTED, 0, "%s: shape %s cannot be prepared: %s", what, hex, msg);
+  if (rc == SM_EINVAL || rc == SM_ERANGE)
+    return fail(r, SM_ST_BAD_REQUEST, 0, "%s: shape %s: %s", what, hex, msg);
+  char full[160];
+  snprintf(full, sizeof full, "%s: shape %s", what, hex);
+  return fail_core(r, j, rc, err, full);
+}
+
+/* sm_store_acquire under the bound; r filled on failure (see fail_prepare). */
+static int acquire(sm_job *j, const uint8_t id[32], const sm_store_key *k, const char *what,
+                   uint32_t nf_detail, sm_prepared **out, sm_store_prep_info *info,
+                   result *r) {
+  uint32_t bound = j->srv->cfg.prepare_timeout_ms;
+  prep_guard g = {j, bound ? sm_srv_now_ns() + (uint64_t)bound * 1000000ull : 0, 0};
+  sm_error err;
+  sm_error_clear(&err);
+  int rc = sm_store_acquire(j->srv->store, id, k, prep_cancel_cb, &g, out, info, &err);
+  return rc ? fail_prepare(r, j, rc, &err, what, id, nf_detail, &g) : 0;
+}
+
 static sm_store_key default_key(const sm_server *s) {
   sm_store_key k = {s->cfg.default_k, s->cfg.default_k, SM_SHELL_DEFAULT_ETA};
   return k;
@@ -100,6 +157,8 @@ static int op_put(sm_job *j, const uint8_t *p, size_t n, result *r) {
   rc = sm_store_put(j->srv->store, q.id, q.draco, q.draco_len, &nv, &nf, &existed, &err);
   if (rc == SM_ELIMIT)
     return fail(r, SM_ST_LIMIT_EXCEEDED, j->srv->cfg.max_vertices, "PUT_SHAPE: %s", err.msg);
+  if (rc == SM_STORE_ECOMPONENTS)
+    return fail(r, SM_ST_LIMIT_EXCEEDED, j->srv->cfg.max_components, "PUT_SHAPE: %s", err.msg);
   if (rc) return fail_core(r, j, rc, &err, "PUT_SHAPE");
   char hex[65];
   sm_hex(q.id, 32, hex);
@@ -108,8 +167,11 @@ static int op_put(sm_job *j, const uint8_t *p, size_t n, result *r) {
     sm_store_key k = default_key(j->srv);
     sm_prepared *pr = NULL;
     sm_store_prep_info info;
-    if (sm_store_acquire(j->srv->store, q.id, &k, cancel_cb, j, &pr, &info, &err))
-      sm_log("warn", "prepare after put failed", " id=%s err=\"%s\"", hex, err.msg);
+    result pre;
+    memset(&pre, 0, sizeof pre);
+    if (acquire(j, q.id, &k, "PUT_SHAPE prepare", 0, &pr, &info, &pre))
+      sm_log("warn", "prepare after put failed", " id=%s status=%u err=\"%s\"", hex,
+             pre.status, pre.msg);
     sm_store_release(j->srv->store, pr);
   }
   sm_proto_put_resp o = {.n_vertices = nv, .n_faces = nf, .flags = existed ? SM_PUT_R_EXISTED : 0};
@@ -134,10 +196,7 @@ static int op_prepare(sm_job *j, const uint8_t *p, size_t n, result *r) {
     return fail(r, SM_ST_LIMIT_EXCEEDED, cfg->max_k, "PREPARE: k above max_k = %u", cfg->max_k);
   sm_prepared *pr = NULL;
   sm_store_prep_info info;
-  sm_error err;
-  sm_error_clear(&err);
-  rc = sm_store_acquire(j->srv->store, q.id, &k, cancel_cb, j, &pr, &info, &err);
-  if (rc) return fail_core(r, j, rc, &err, "PREPARE");
+  if (acquire(j, q.id, &k, "PREPARE", 0, &pr, &info, r)) return -1;
   const sm_shape *s = sm_prepared_shape(pr);
   sm_proto_prepare_resp o = {
       .n_vertices = (uint32_t)s->mesh->nv, .n_faces = (uint32_t)s->mesh->nf,
@@ -194,15 +253,8 @@ static void pair_free(sm_job *j, pair_ctx *c) {
 
 static int acquire_pair(sm_job *j, const uint8_t *x, const uint8_t *y, const sm_store_key *key,
                         pair_ctx *c, result *r) {
-  sm_error err;
-  sm_error_clear(&err);
-  int rc = sm_store_acquire(j->srv->store, x, key, cancel_cb, j, &c->px, &c->ix, &err);
-  if (rc == SM_STORE_ENOTFOUND) return fail(r, SM_ST_NOT_FOUND, 0, "shape x not stored");
-  if (rc) return fail_core(r, j, rc, &err, "prepare x");
-  rc = sm_store_acquire(j->srv->store, y, key, cancel_cb, j, &c->py, &c->iy, &err);
-  if (rc == SM_STORE_ENOTFOUND) return fail(r, SM_ST_NOT_FOUND, 1, "shape y not stored");
-  if (rc) return fail_core(r, j, rc, &err, "prepare y");
-  return 0;
+  if (acquire(j, x, key, "x", 0, &c->px, &c->ix, r)) return -1;
+  return acquire(j, y, key, "y", 1, &c->py, &c->iy, r);
 }
 
 static uint64_t prep_us(const sm_store_prep_info *i) {
@@ -506,6 +558,7 @@ typedef struct query_ctx {
   sm_prepared *px;
   uint64_t t0;
   _Atomic int failed;
+  atomic_uint skipped; /* candidates that could not be compared */
   pthread_mutex_t mu; /* err */
   result err;
 } query_ctx;
@@ -530,6 +583,20 @@ static void query_fail(query_ctx *c, const result *r) {
   pthread_mutex_unlock(&c->mu);
 }
 
+/* A candidate that cannot be compared (dropped, damaged, too small for the basis, past
+ * the preparation bound, a solver failure) is one bad shape among many: it is skipped,
+ * counted and logged, never fatal to the query. Only the request's own cancel or
+ * deadline ends the query. */
+static void query_skip_or_fail(query_ctx *c, sm_job *uj, const result *r) {
+  if (r->status == SM_ST_CANCELLED || (r->status == SM_ST_DEADLINE && cancel_cb(uj))) {
+    query_fail(c, r);
+    return;
+  }
+  if (atomic_fetch_add(&c->skipped, 1) == 0 && r->status != SM_ST_NOT_FOUND)
+    sm_log("warn", "QUERY candidate skipped", " rid=%u status=%u err=\"%s\"", c->job->rid,
+           r->status, r->msg);
+}
+
 /* Decodes and sets up a query; NULL with r filled on a failure. */
 static query_ctx *query_begin(sm_job *j, const uint8_t *p, size_t n, result *r) {
   sm_proto_query_req q;
@@ -551,6 +618,7 @@ static query_ctx *query_begin(sm_job *j, const uint8_t *p, size_t n, result *r) 
   }
   pthread_mutex_init(&c->mu, NULL);
   atomic_init(&c->failed, 0);
+  atomic_init(&c->skipped, 0);
   c->job = j;
   c->q = q;
   c->t0 = sm_srv_now_ns();
@@ -574,13 +642,8 @@ static query_ctx *query_begin(sm_job *j, const uint8_t *p, size_t n, result *r) 
   sm_match_opts_default(&c->mo);
   c->mo.k1 = c->key.k_lb < c->mo.k1 ? c->key.k_lb : c->mo.k1;
   sm_distance_match_opts(&c->mo);
-  sm_error err;
-  sm_error_clear(&err);
   sm_store_prep_info info;
-  rc = sm_store_acquire(j->srv->store, q.id, &c->key, cancel_cb, j, &c->px, &info, &err);
-  if (rc == SM_STORE_ENOTFOUND) rc = fail(r, SM_ST_NOT_FOUND, 0, "QUERY: shape not stored");
-  else if (rc) rc = fail_core(r, j, rc, &err, "QUERY");
-  if (rc) {
+  if (acquire(j, q.id, &c->key, "QUERY", 0, &c->px, &info, r)) {
     query_free(c);
     return NULL;
   }
@@ -600,6 +663,7 @@ static void query_unit(void *vc, uint32_t u, sm_job *uj) {
   memset(&r, 0, sizeof r);
   sm_error err;
   sm_error_clear(&err);
+  int e;
   if (cancel_cb(uj)) {
     sm_error_set(&err, SM_ECANCELED, "cancelled");
     fail_core(&r, uj, SM_ECANCELED, &err, "QUERY");
@@ -609,11 +673,8 @@ static void query_unit(void *vc, uint32_t u, sm_job *uj) {
   sm_store *st = uj->srv->store;
   sm_prepared *py = NULL;
   sm_store_prep_info iy;
-  int e = sm_store_acquire(st, cid, &c->key, cancel_cb, uj, &py, &iy, &err);
-  if (e == SM_STORE_ENOTFOUND) return; /* dropped or never stored: skipped */
-  if (e) {
-    fail_core(&r, uj, e, &err, "QUERY candidate");
-    query_fail(c, &r);
+  if (acquire(uj, cid, &c->key, "QUERY candidate", 0, &py, &iy, &r)) {
+    query_skip_or_fail(c, uj, &r);
     return;
   }
   const sm_shape *x = sm_prepared_shape(c->px), *y = sm_prepared_shape(py);
@@ -636,7 +697,7 @@ static void query_unit(void *vc, uint32_t u, sm_job *uj) {
     if (e) {
       sm_store_release(st, py);
       fail_core(&r, uj, e, &err, "QUERY match");
-      query_fail(c, &r);
+      query_skip_or_fail(c, uj, &r);
       return;
     }
     dist = d.total;
@@ -713,6 +774,10 @@ static int query_end(query_ctx *c, result *r) {
   uint32_t n = 0;
   qitem *v = query_ranked(c, &n);
   if (c->q.mode == SM_QUERY_FULL) c->considered = n;
+  unsigned skipped = atomic_load(&c->skipped);
+  if (skipped)
+    sm_log("info", "QUERY done with skipped candidates", " rid=%u skipped=%u considered=%u",
+           c->job->rid, skipped, c->considered);
   sm_job *j = c->job;
   uint32_t count = n < c->q.k ? n : c->q.k;
   sm_proto_hit *hits = calloc(count ? count : 1, sizeof *hits);

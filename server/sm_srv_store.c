@@ -42,11 +42,19 @@ typedef struct variant {
   struct variant *lru_prev, *lru_next; /* READY only; head = most recent */
 } variant;
 
+/* What stat(2) said about a shape file when its content was last verified: any write to
+ * the file changes its size, mtime or (rename over it) inode. */
+typedef struct file_sig {
+  uint64_t size, ino;
+  int64_t mtime_ns;
+} file_sig;
+
 struct entry {
   uint8_t id[32];
   char hex[65];
   uint32_t nv, nf;
   uint64_t bytes;
+  file_sig sig;
   int dropped;
   int pins; /* computations in progress for this entry */
   variant *vars;
@@ -59,6 +67,7 @@ struct sm_store {
   char dir[SM_SRV_PATH_MAX];
   sm_limits lim;
   sm_store_key def;
+  uint32_t max_components;
   uint64_t budget;
   entry *buckets[NBUCKETS];
   variant *lru_head, *lru_tail;
@@ -66,6 +75,8 @@ struct sm_store {
 };
 
 static atomic_uint tmp_seq;
+
+static void forget_corrupt_locked(sm_store *st, entry *e, const char *why);
 
 /* ---------------------------------------------------------------- helpers */
 
@@ -97,6 +108,24 @@ static uint64_t dbits(double d) {
 
 static void shape_path(const sm_store *st, const char *hex, char *out, size_t n) {
   snprintf(out, n, "%s/shapes/%s.drc", st->dir, hex);
+}
+
+static int file_sig_of(const char *path, file_sig *g) {
+  struct stat sb;
+  if (stat(path, &sb)) return -1;
+  g->size = (uint64_t)sb.st_size;
+  g->ino = (uint64_t)sb.st_ino;
+  g->mtime_ns = (int64_t)sb.st_mtim.tv_sec * 1000000000 + sb.st_mtim.tv_nsec;
+  return 0;
+}
+
+/* 1 if e's file is still the one verified (cheap: one stat; the content itself is checked
+ * by SHA-256 whenever it is read). */
+static int entry_file_intact(const sm_store *st, const entry *e) {
+  char p[PATHBUF];
+  file_sig g;
+  shape_path(st, e->hex, p, sizeof p);
+  return file_sig_of(p, &g) == 0 && !memcmp(&g, &e->sig, sizeof g);
 }
 
 static void basis_path(const sm_store *st, const char *hex, int kind, int k, double eta,
@@ -224,11 +253,13 @@ static void maybe_free_entry(entry *e) {
 static int load_shape_file(sm_store *st, const char *name) {
   size_t nl = strlen(name);
   if (nl != 68 || strcmp(name + 64, ".drc")) {
-    if (strstr(name, ".tmp.")) { /* a crash between create and rename */
-      char p[PATHBUF];
-      snprintf(p, sizeof p, "%s/shapes/%s", st->dir, name);
+    char p[PATHBUF];
+    snprintf(p, sizeof p, "%s/shapes/%s", st->dir, name);
+    if (strstr(name, ".tmp.")) /* a crash between create and rename */
       unlink(p);
-    }
+    else /* not ours to delete, but never silently ignored */
+      sm_log("warn", "store: stray file in shapes/ ignored (not named <sha256>.drc)",
+             " path=%s", p);
     return 0;
   }
   char path[PATHBUF];
@@ -270,6 +301,7 @@ static int load_shape_file(sm_store *st, const char *name) {
   e->nf = (uint32_t)m->nf;
   e->bytes = len;
   sm_mesh_destroy(m);
+  if (file_sig_of(path, &e->sig)) memset(&e->sig, 0, sizeof e->sig);
   unsigned b = bucket_of(id);
   e->hnext = st->buckets[b];
   st->buckets[b] = e;
@@ -347,17 +379,71 @@ void sm_store_close(sm_store *st) {
 
 /* ---------------------------------------------------------------- put / has / drop */
 
+/* 1 if the stored file of hex holds exactly these bytes. */
+static int stored_file_matches(const sm_store *st, const char *hex, const uint8_t *draco,
+                               size_t len) {
+  char path[PATHBUF];
+  shape_path(st, hex, path, sizeof path);
+  uint8_t *buf = NULL;
+  size_t n = 0;
+  sm_error e;
+  if (sm_read_file_bytes(path, len + 1, &buf, &n, &e)) return 0;
+  int ok = n == len && !memcmp(buf, draco, len);
+  free(buf);
+  return ok;
+}
+
+/* What the daemon can prepare, decided at PUT so that no stored shape fails later for
+ * a reason its bytes already showed: every component carries its own rigid modes in the
+ * elastic basis (hundreds of components made a preparation run for ten minutes), and
+ * the eigensolvers need clearly more vertices than basis functions. */
+static int check_preparable(const sm_store *st, const sm_mesh *c, const sm_clean_report *rep,
+                            sm_error *err) {
+  int k = st->def.k_lb > st->def.k_el ? st->def.k_lb : st->def.k_el;
+  if (st->max_components && (uint32_t)rep->components > st->max_components)
+    return sm_error_set(err, SM_STORE_ECOMPONENTS,
+                        "the mesh has %d connected components after cleaning; this daemon "
+                        "prepares shapes with at most %u (--max-components)",
+                        rep->components, st->max_components);
+  if (c->nv < 2 * k + 1)
+    return sm_error_set(err, SM_EUNSUPPORTED,
+                        "the mesh has %d vertices after cleaning; at least %d are needed for "
+                        "the daemon's %d basis functions",
+                        c->nv, 2 * k + 1, k);
+  return SM_OK;
+}
+
+/* Re-PUT of a stored id: the bytes are verified, so they can repair a file that was
+ * damaged or removed behind the daemon's back. */
+static int put_existing(sm_store *st, const uint8_t id[32], const char *hex,
+                        const uint8_t *draco, size_t len, int *existed, sm_error *err) {
+  if (stored_file_matches(st, hex, draco, len)) return SM_OK;
+  char path[PATHBUF];
+  shape_path(st, hex, path, sizeof path);
+  int rc = write_atomic(path, draco, len, err);
+  if (rc) return rc;
+  pthread_mutex_lock(&st->mu);
+  entry *e = find(st, id);
+  if (e && file_sig_of(path, &e->sig)) memset(&e->sig, 0, sizeof e->sig);
+  st->s.shapes_healed++;
+  pthread_mutex_unlock(&st->mu);
+  sm_log("warn", "store: damaged shape file rewritten from a PUT", " id=%s", hex);
+  *existed = 0; /* the bytes were written */
+  return SM_OK;
+}
+
 int sm_store_put(sm_store *st, const uint8_t id[32], const uint8_t *draco, size_t len,
                  uint32_t *nv, uint32_t *nf, int *existed, sm_error *err) {
   *existed = 0;
   uint8_t got[32];
+  char hex[65], path[PATHBUF];
   sm_sha256(draco, len, got);
+  sm_hex(id, 32, hex);
   if (memcmp(got, id, 32)) {
-    char a[65], b[65];
-    sm_hex(id, 32, a);
+    char b[65];
     sm_hex(got, 32, b);
     return sm_error_set(err, SM_STORE_EIDMISMATCH, "id %.16s... but SHA-256 of the bytes is %.16s...",
-                        a, b);
+                        hex, b);
   }
   pthread_mutex_lock(&st->mu);
   entry *e = find(st, id);
@@ -367,19 +453,19 @@ int sm_store_put(sm_store *st, const uint8_t id[32], const uint8_t *draco, size_
     *existed = 1;
   }
   pthread_mutex_unlock(&st->mu);
-  if (*existed) return SM_OK;
+  if (*existed) return put_existing(st, id, hex, draco, len, existed, err);
 
   sm_mesh *m = NULL, *c = NULL;
+  sm_clean_report rep;
   int rc = sm_draco_decode(draco, len, &st->lim, &m, err);
   if (rc) return rc;
-  rc = sm_mesh_clean(m, &st->lim, &c, NULL, err);
+  rc = sm_mesh_clean(m, &st->lim, &c, &rep, err);
+  if (!rc) rc = check_preparable(st, c, &rep, err);
   uint32_t v = (uint32_t)m->nv, f = (uint32_t)m->nf;
   sm_mesh_destroy(m);
   sm_mesh_destroy(c);
   if (rc) return rc;
 
-  char hex[65], path[PATHBUF];
-  sm_hex(id, 32, hex);
   shape_path(st, hex, path, sizeof path);
   rc = write_atomic(path, draco, len, err);
   if (rc) return rc;
@@ -394,6 +480,7 @@ int sm_store_put(sm_store *st, const uint8_t id[32], const uint8_t *draco, size_
     e->nv = v;
     e->nf = f;
     e->bytes = len;
+    if (file_sig_of(path, &e->sig)) memset(&e->sig, 0, sizeof e->sig);
     unsigned b = bucket_of(id);
     e->hnext = st->buckets[b];
     st->buckets[b] = e;
@@ -417,6 +504,10 @@ int sm_store_has(sm_store *st, const uint8_t id[32], uint32_t *nv, uint32_t *nf,
   char hex[65];
   pthread_mutex_lock(&st->mu);
   entry *e = find(st, id);
+  if (e && !entry_file_intact(st, e)) {
+    forget_corrupt_locked(st, e, "HAS");
+    e = NULL;
+  }
   if (e) {
     *nv = e->nv;
     *nf = e->nf;
@@ -454,13 +545,8 @@ static void unlink_bases(const sm_store *st, const char *hex) {
   closedir(dd);
 }
 
-int sm_store_drop(sm_store *st, const uint8_t id[32]) {
-  pthread_mutex_lock(&st->mu);
-  entry *e = find(st, id);
-  if (!e) {
-    pthread_mutex_unlock(&st->mu);
-    return SM_STORE_ENOTFOUND;
-  }
+/* Removes e from the index, the cache and the disk (DROP, or a file found corrupt). */
+static void forget_locked(sm_store *st, entry *e) {
   unlink_entry(st, e);
   e->dropped = 1;
   st->s.shapes--;
@@ -477,8 +563,28 @@ int sm_store_drop(sm_store *st, const uint8_t id[32]) {
   shape_path(st, hex, p, sizeof p);
   unlink(p);
   unlink_bases(st, hex);
+}
+
+int sm_store_drop(sm_store *st, const uint8_t id[32]) {
+  pthread_mutex_lock(&st->mu);
+  entry *e = find(st, id);
+  if (!e) {
+    pthread_mutex_unlock(&st->mu);
+    return SM_STORE_ENOTFOUND;
+  }
+  forget_locked(st, e);
   pthread_mutex_unlock(&st->mu);
   return SM_OK;
+}
+
+/* A stored file that changed or vanished behind the daemon's back: it can no longer be
+ * trusted, so the shape is forgotten (HAS says not stored, QUERY skips it) until a PUT of
+ * the right bytes stores it again. */
+static void forget_corrupt_locked(sm_store *st, entry *e, const char *why) {
+  sm_log("warn", "store: shape file changed on disk, shape forgotten", " id=%s why=%s",
+         e->hex, why);
+  st->s.shapes_corrupt++;
+  forget_locked(st, e);
 }
 
 /* ---------------------------------------------------------------- prepare */
@@ -546,14 +652,14 @@ static int compute_variant(sm_store *st, const char *hex, const sm_store_key *ke
   size_t len = 0;
   uint64_t t0 = sm_srv_now_ns();
   int rc = sm_read_file_bytes(path, (size_t)1 << 34, &buf, &len, err);
-  if (rc) return rc;
+  if (rc) return SM_STORE_ECORRUPT;
   uint8_t id[32];
   char h2[65];
   sm_sha256(buf, len, id);
   sm_hex(id, 32, h2);
   if (strcmp(h2, hex)) {
     free(buf);
-    return sm_error_set(err, SM_ECHECKSUM, "%s: content does not match its id", path);
+    return sm_error_set(err, SM_STORE_ECORRUPT, "%s: content does not match its id", path);
   }
   sm_mesh *raw = NULL, *m = NULL;
   rc = sm_draco_decode(buf, len, &st->lim, &raw, err);
@@ -615,6 +721,13 @@ int sm_store_acquire(sm_store *st, const uint8_t id[32], const sm_store_key *key
   pthread_mutex_lock(&st->mu);
   for (;;) {
     entry *e = find(st, id);
+    if (e && !e->pins && !entry_file_intact(st, e)) {
+      forget_corrupt_locked(st, e, "acquire");
+      pthread_mutex_unlock(&st->mu);
+      return sm_error_set(err, SM_STORE_ENOTFOUND,
+                          "the stored file was damaged on disk and has been removed; PUT the "
+                          "shape again");
+    }
     if (!e) {
       pthread_mutex_unlock(&st->mu);
       return sm_error_set(err, SM_STORE_ENOTFOUND, "shape not stored");
@@ -667,7 +780,14 @@ int sm_store_acquire(sm_store *st, const uint8_t id[32], const sm_store_key *key
     pthread_mutex_lock(&st->mu);
     e->pins--;
     var_unlink(e, v);
-    if (rc) {
+    if (rc == SM_STORE_ECORRUPT) {
+      free(v);
+      if (!e->dropped) forget_corrupt_locked(st, e, "content");
+      sm_error_set(err, SM_STORE_ENOTFOUND,
+                   "the stored file was damaged on disk and has been removed; PUT the shape "
+                   "again");
+      rc = SM_STORE_ENOTFOUND;
+    } else if (rc) {
       free(v);
     } else if (e->dropped) {
       free(v);
@@ -722,5 +842,11 @@ int sm_store_list(sm_store *st, uint8_t **ids, size_t *n) {
 void sm_store_get_stats(sm_store *st, sm_store_stats *out) {
   pthread_mutex_lock(&st->mu);
   *out = st->s;
+  pthread_mutex_unlock(&st->mu);
+}
+
+void sm_store_set_max_components(sm_store *st, uint32_t max_components) {
+  pthread_mutex_lock(&st->mu);
+  st->max_components = max_components;
   pthread_mutex_unlock(&st->mu);
 }

@@ -38,7 +38,12 @@
 #include "sm_match.h"
 #include "sm_mesh.h"
 
-enum { SM_STORE_ENOTFOUND = -100, SM_STORE_EIDMISMATCH = -101 };
+enum {
+  SM_STORE_ENOTFOUND = -100,
+  SM_STORE_EIDMISMATCH = -101,
+  SM_STORE_ECORRUPT = -102,    /* internal: a stored file failed its check (never returned) */
+  SM_STORE_ECOMPONENTS = -103  /* PUT: more connected components than max_components */
+};
 
 typedef struct sm_store sm_store;
 typedef struct sm_prepared sm_prepared;
@@ -59,6 +64,7 @@ typedef struct sm_store_stats {
   uint64_t shapes, shapes_bytes, bases_cached, cache_bytes;
   uint64_t cache_hits, cache_misses, evictions, singleflight_waits, prepares;
   uint64_t bases_computed, bases_loaded, bases_corrupt, shapes_corrupt;
+  uint64_t shapes_healed; /* damaged files rewritten by a PUT of their bytes */
 } sm_store_stats;
 
 /* Opens (creating) dir, scans shapes/. lim bounds decoding. default_key: what
@@ -67,8 +73,17 @@ int sm_store_open(const char *dir, uint64_t cache_bytes, const sm_limits *lim,
                   const sm_store_key *default_key, sm_store **out, sm_error *err);
 void sm_store_close(sm_store *st);
 
-/* Verifies SHA-256(draco) == id, decodes (limits before allocation), checks that cleaning
- * leaves a mesh, writes the file. *existed = 1 if it was already stored. */
+/* What PUT accepts beyond the decoding limits (0 = no component bound). Call before use. */
+void sm_store_set_max_components(sm_store *st, uint32_t max_components);
+
+/* Verifies SHA-256(draco) == id, decodes (limits before allocation), checks that the
+ * cleaned mesh can be prepared (components <= max_components: SM_STORE_ECOMPONENTS; more
+ * than twice as many vertices as basis functions: SM_EUNSUPPORTED), writes the file.
+ * *existed = 1 if it was already stored with these bytes; a stored file that no longer
+ * holds them (damaged or removed behind the daemon's back) is rewritten (*existed = 0).
+ * A file found changed on disk (size, mtime or inode differ from when it was verified;
+ * checked by HAS and acquire) or whose content fails its SHA-256 makes the shape
+ * forgotten: it is reported as not stored (counted shapes_corrupt) until PUT again. */
 int sm_store_put(sm_store *st, const uint8_t id[32], const uint8_t *draco, size_t len,
                  uint32_t *nv, uint32_t *nf, int *existed, sm_error *err);
 /* 1 stored, 0 not. *prepared: default variant cached in memory or on disk. */

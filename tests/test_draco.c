@@ -154,6 +154,20 @@ static void test_hostile(void) {
   sm_limits lim = {10, 10};
   CHECK(sm_draco_decode(b0, n0, &lim, &m, &e) == SM_ELIMIT && m == NULL);
 
+  /* Counts are refused from the header, before Draco decodes: the sequential header of
+   * the icosphere (11 bytes, then varint faces = 80, varint points = 42) rewritten to
+   * announce 2,000,000,000 faces over the same few bytes. Decoding it would fail, or try
+   * to allocate for the faces; the limit check must answer first. */
+  REQUIRE(n0 > 13 && b0[4] == 'O' && b0[11] == 80 && b0[12] == 42);
+  uint8_t *big = malloc(n0 + 8);
+  memcpy(big, b0, 11);
+  static const uint8_t two_billion[5] = {0x80, 0xa8, 0xd6, 0xb9, 0x07}; /* LEB128 */
+  memcpy(big + 11, two_billion, 5);
+  memcpy(big + 16, b0 + 12, n0 - 12);
+  CHECK(sm_draco_decode(big, n0 + 4, NULL, &m, &e) == SM_ELIMIT && m == NULL);
+  CHECK(strstr(e.msg, "2000000000") != NULL);
+  free(big);
+
   /* Through sm_mesh_read_file with the .drc extension. */
   char path[1024];
   snprintf(path, sizeof path, "%s/draco_icosphere.drc", SM_TEST_TMP);

@@ -36,6 +36,7 @@
 #include "sm_test.h"
 #include "sm_test_daemon.h"
 #include "sm_test_wire.h"
+#include "sm_testmesh.h"
 
 
 #define K 30
@@ -351,6 +352,224 @@ static int find_basis(const shape *s, const char *kind, char *out, size_t n) {
 }
 
 /* ------------------------------------------------------------------ main */
+
+
+/* ------------------------------------------------------------------ bad shapes (issue 10) */
+
+/* A Draco-encoded copy of m (which it frees) as a shape. */
+static void shape_from_mesh(shape *s, sm_mesh *m) {
+  sm_error err;
+  uint8_t *drc = NULL;
+  size_t len = 0;
+  REQUIRE(sm_draco_encode(m, 0, &drc, &len, &err) == 0);
+  sm_mesh_destroy(m);
+  shape_from_bytes(s, drc, len);
+}
+
+static void shape_free(shape *s) {
+  free(s->drc);
+  sm_mesh_destroy(s->mesh);
+  memset(s, 0, sizeof *s);
+}
+
+/* Any request; returns its status and, on an error, its message in msg (may be NULL). */
+static uint16_t request(int fd, ptrdiff_t (*enc)(uint8_t *, size_t, void *), void *arg,
+                        frame *out, char *msg, size_t msg_len) {
+  size_t cap = 1024;
+  uint8_t *buf = malloc(cap);
+  ptrdiff_t n = enc(buf, cap, arg);
+  if (n > (ptrdiff_t)cap) {
+    buf = realloc(buf, (size_t)n);
+    n = enc(buf, (size_t)n, arg);
+  }
+  REQUIRE(n > 0 && send_all(fd, buf, (size_t)n) == 0);
+  free(buf);
+  REQUIRE(recv_frame(fd, out) == 0);
+  if (msg) {
+    msg[0] = 0;
+    sm_proto_error e;
+    if (out->h.status && !sm_proto_dec_error(out->body, out->body_len, &e))
+      snprintf(msg, msg_len, "%.*s", (int)e.msg_len, e.msg);
+  }
+  return out->h.status;
+}
+
+static ptrdiff_t enc_prepare(uint8_t *buf, size_t cap, void *arg) {
+  sm_proto_header h = req_hdr(g_rid++);
+  return sm_proto_enc_prepare_req(buf, cap, &h, arg);
+}
+
+static ptrdiff_t enc_query(uint8_t *buf, size_t cap, void *arg) {
+  sm_proto_header h = req_hdr(g_rid++);
+  return sm_proto_enc_query_req(buf, cap, &h, arg);
+}
+
+/* PREPARE of id with the daemon's defaults; status, and the error message in msg. */
+static uint16_t prepare(int fd, const uint8_t id[32], sm_proto_error *detail, char *msg,
+                        size_t msg_len) {
+  sm_proto_prepare_req q;
+  memset(&q, 0, sizeof q);
+  memcpy(q.id, id, 32);
+  frame f;
+  uint16_t st = request(fd, enc_prepare, &q, &f, msg, msg_len);
+  if (st && detail) REQUIRE(sm_proto_dec_error(f.body, f.body_len, detail) == 0);
+  frame_free(&f);
+  return st;
+}
+
+/* QUERY (spectral mode: no matching needed) of id against every stored shape; status and
+ * n_considered. */
+static uint16_t query_spectral(int fd, const uint8_t id[32], uint32_t *considered) {
+  sm_proto_query_req q;
+  memset(&q, 0, sizeof q);
+  memcpy(q.id, id, 32);
+  q.k = 10;
+  q.mode = SM_QUERY_SPECTRAL;
+  frame f;
+  char msg[400];
+  uint16_t st = request(fd, enc_query, &q, &f, msg, sizeof msg);
+  if (st) fprintf(stderr, "  QUERY -> %s: %s\n", sm_proto_status_name(st), msg);
+  sm_proto_query_resp r;
+  if (!st) {
+    REQUIRE(sm_proto_dec_query_resp(f.body, f.body_len, &r) == 0);
+    *considered = r.n_considered;
+  }
+  frame_free(&f);
+  return st;
+}
+
+/* The shape's id as 64 hex digits in out. */
+static const char *shape_hex(const shape *s, char out[65]) {
+  static const char digits[] = "0123456789abcdef";
+  for (int i = 0; i < 32; i++) out[2 * i] = digits[s->id[i] >> 4], out[2 * i + 1] = digits[s->id[i] & 15];
+  out[64] = 0;
+  return out;
+}
+
+/* Flips one byte in the middle of the stored Draco file of s (behind the daemon's back). */
+static void damage_shape_file(const shape *s) {
+  char hex[65], path[1200];
+  snprintf(path, sizeof path, "%s/data/shapes/%s.drc", g_dir, shape_hex(s, hex));
+  FILE *f = fopen(path, "r+b");
+  REQUIRE(f);
+  fseek(f, (long)s->len / 2, SEEK_SET);
+  int ch = fgetc(f);
+  fseek(f, (long)s->len / 2, SEEK_SET);
+  fputc(ch ^ 0x5a, f);
+  fclose(f);
+}
+
+/* 1 if the stored file of s holds exactly its bytes. */
+static int shape_file_is(const shape *s) {
+  char hex[65], path[1200];
+  snprintf(path, sizeof path, "%s/data/shapes/%s.drc", g_dir, shape_hex(s, hex));
+  uint8_t *buf = NULL;
+  size_t n = 0;
+  sm_error err;
+  if (sm_read_file_bytes(path, 1u << 30, &buf, &n, &err)) return 0;
+  int same = n == s->len && !memcmp(buf, s->drc, n);
+  free(buf);
+  return same;
+}
+
+/* Runs 4-6: what PUT refuses, the preparation bound, QUERY with a candidate that cannot
+ * be compared, and stored files damaged while the daemon runs. x and y are stored and
+ * prepared (k = 30) by the runs before. */
+static void test_bad_shapes(const shape *x, const shape *y) {
+  shape tiny, small, multi, big;
+  shape_from_mesh(&tiny, tm_icosphere(0));  /* 12 vertices */
+  shape_from_mesh(&small, tm_icosphere(1)); /* 42 vertices */
+  sm_mesh *a = tm_icosphere(2), *b = tm_union(a, a, 3.0);
+  shape_from_mesh(&multi, tm_union(b, a, 6.0)); /* three spheres */
+  sm_mesh_destroy(a);
+  sm_mesh_destroy(b);
+  shape_from_mesh(&big, tm_icosphere(4)); /* 2,562 vertices */
+  sm_proto_put_resp pr;
+  char msg[400];
+
+  /* run 4: an older daemon with k = 20 stores the 42-vertex sphere (>= 2k + 1). */
+  int port = start_daemon("--default-k 20 --max-components 2");
+  REQUIRE(port > 0);
+  int fd = connect_to(port);
+  hello(fd, NULL);
+  CHECK(put(fd, small.id, small.drc, small.len, &pr) == SM_ST_OK);
+  CHECK(put(fd, tiny.id, tiny.drc, tiny.len, NULL) == SM_ST_MESH_REJECTED);
+  CHECK(!(has(fd, tiny.id) & SM_HAS_STORED));
+  {
+    sm_proto_put_req q;
+    memset(&q, 0, sizeof q);
+    memcpy(q.id, multi.id, 32);
+    q.draco = multi.drc;
+    q.draco_len = (uint32_t)multi.len;
+    sm_proto_header h = req_hdr(g_rid++);
+    SEND(fd, sm_proto_enc_put_req(buf, cap, &h, &q));
+    frame f;
+    REQUIRE(recv_frame(fd, &f) == 0);
+    CHECK(f.h.status == SM_ST_LIMIT_EXCEEDED);
+    sm_proto_error e;
+    CHECK(sm_proto_dec_error(f.body, f.body_len, &e) == 0 && e.detail == 2);
+    snprintf(msg, sizeof msg, "%.*s", (int)e.msg_len, e.msg);
+    CHECK(strstr(msg, "3 connected components") != NULL);
+    frame_free(&f);
+  }
+  CHECK(ping(fd, 10) == 0);
+  close(fd);
+  CHECK(stop_daemon() == 0);
+
+  /* run 5: preparation bound 1 ms: every preparation stops there, naming the shape. */
+  port = start_daemon("--prepare-timeout-ms 1");
+  REQUIRE(port > 0);
+  fd = connect_to(port);
+  hello(fd, NULL);
+  CHECK(put(fd, big.id, big.drc, big.len, &pr) == SM_ST_OK);
+  sm_proto_error e;
+  CHECK(prepare(fd, big.id, &e, msg, sizeof msg) == SM_ST_LIMIT_EXCEEDED);
+  CHECK(e.detail == 1 && strstr(msg, "--prepare-timeout-ms") != NULL);
+  CHECK(strstr(msg, shape_hex(&big, (char[65]){0})) != NULL);
+  CHECK(ping(fd, 11) == 0);
+  {
+    sm_proto_id_req q;
+    memcpy(q.id, big.id, 32);
+    sm_proto_header h = req_hdr(g_rid++);
+    SEND(fd, sm_proto_enc_id_req(buf, cap, &h, SM_OP_DROP_SHAPE, &q));
+    frame f;
+    REQUIRE(recv_frame(fd, &f) == 0);
+    CHECK(f.h.status == SM_ST_OK);
+    frame_free(&f);
+  }
+  close(fd);
+  CHECK(stop_daemon() == 0);
+
+  /* run 6: k = 45, which the 42-vertex sphere is too small for: PREPARE says so naming
+   * it, QUERY skips it; damaged files are never served and a PUT of the right bytes
+   * repairs them. */
+  port = start_daemon("--default-k 45");
+  REQUIRE(port > 0);
+  fd = connect_to(port);
+  hello(fd, NULL);
+  CHECK(prepare(fd, small.id, NULL, msg, sizeof msg) == SM_ST_BAD_REQUEST);
+  CHECK(strstr(msg, shape_hex(&small, (char[65]){0})) != NULL);
+  uint32_t considered = 99;
+  CHECK(query_spectral(fd, x->id, &considered) == SM_ST_OK);
+  CHECK(considered == 1); /* y; the 42-vertex sphere skipped */
+  damage_shape_file(y);
+  CHECK(!(has(fd, y->id) & SM_HAS_STORED));
+  CHECK(query_spectral(fd, x->id, &considered) == SM_ST_OK && considered == 0);
+  CHECK(put(fd, y->id, y->drc, y->len, &pr) == SM_ST_OK && !(pr.flags & SM_PUT_R_EXISTED));
+  CHECK(has(fd, y->id) & SM_HAS_STORED);
+  CHECK(shape_file_is(y));
+  damage_shape_file(y); /* and re-PUT before anything noticed: rewritten */
+  CHECK(put(fd, y->id, y->drc, y->len, &pr) == SM_ST_OK && !(pr.flags & SM_PUT_R_EXISTED));
+  CHECK(shape_file_is(y));
+  CHECK(put(fd, y->id, y->drc, y->len, &pr) == SM_ST_OK && (pr.flags & SM_PUT_R_EXISTED));
+  CHECK(query_spectral(fd, x->id, &considered) == SM_ST_OK && considered == 1);
+  close(fd);
+  CHECK(stop_daemon() == 0);
+  shape_free(&tiny);
+  shape_free(&small);
+  shape_free(&multi);
+  shape_free(&big);
+}
 
 int main(void) {
   signal(SIGPIPE, SIG_IGN);
@@ -784,6 +1003,8 @@ int main(void) {
   CHECK(stat_of(fd, "bases_loaded") == 3);
   close(fd);
   CHECK(stop_daemon() == 0);
+
+  test_bad_shapes(&x, &y);
 
   /* The daemon logged logfmt lines. */
   FILE *lf = fopen(g_log, "r");

@@ -3,8 +3,9 @@
  * DESIGN
  *   Decoding: the result's vertex i is Draco point i, reading the position through the
  *   attribute's point-to-value map (edgebreaker files share values between points, and a
- *   point is what the faces index). Counts are checked against the limits before the
- *   sm_mesh is allocated.
+ *   point is what the faces index). The counts the bitstream announces are checked
+ *   against the limits before Draco decodes anything (peek_counts), and the decoded counts
+ *   again before the sm_mesh is allocated.
  *   Encoding: the Draco mesh is built with one point per vertex and an identity
  *   point-to-value map, and is never passed through Draco's deduplication, so the
  *   sequential coder writes points and faces in our order and a decode gives them back in
@@ -18,15 +19,63 @@
 #include <memory>
 #include <new>
 
+#include <draco/compression/config/compression_shared.h>
 #include <draco/compression/decode.h>
 #include <draco/compression/encode.h>
+#include <draco/compression/point_cloud/point_cloud_decoder.h>
+#include <draco/core/varint_decoding.h>
 #include <draco/mesh/mesh.h>
+#include <draco/metadata/geometry_metadata.h>
+#include <draco/metadata/metadata_decoder.h>
 
 extern "C" {
 #include "sm_meshio.h"
 }
 
 namespace {
+
+/* Reads one count of the connectivity header: a varint from bitstream 2.2 on (2.0 for the
+ * edgebreaker vertex count), a little-endian uint32 before. */
+bool read_count(draco::DecoderBuffer *b, bool varint, uint32_t *out) {
+  return varint ? draco::DecodeVarint(out, b) : b->Decode(out);
+}
+
+/* The vertex and face counts a mesh bitstream announces, read without decoding it (the
+ * layout of Draco's sequential and edgebreaker connectivity headers), so that an
+ * over-limit mesh is refused before Draco allocates anything for it. Edgebreaker's count
+ * is of encoded vertices, which attribute seams can only increase. false = not
+ * readable here; the full decode then decides. */
+bool peek_counts(const uint8_t *buf, size_t len, int64_t *nv, int64_t *nf) {
+  draco::DecoderBuffer b;
+  b.Init(reinterpret_cast<const char *>(buf), len);
+  draco::DracoHeader h;
+  if (!draco::PointCloudDecoder::DecodeHeader(&b, &h).ok()) return false;
+  if (h.encoder_type != draco::TRIANGULAR_MESH) return false;
+  uint16_t version = DRACO_BITSTREAM_VERSION(h.version_major, h.version_minor);
+  b.set_bitstream_version(version);
+  if (h.flags & METADATA_FLAG_MASK) {
+    draco::MetadataDecoder md;
+    draco::GeometryMetadata gm;
+    if (!md.DecodeGeometryMetadata(&b, &gm)) return false;
+  }
+  uint32_t v = 0, f = 0;
+  bool v22 = version >= DRACO_BITSTREAM_VERSION(2, 2);
+  if (h.encoder_method == draco::MESH_SEQUENTIAL_ENCODING) {
+    if (!read_count(&b, v22, &f) || !read_count(&b, v22, &v)) return false;
+  } else if (h.encoder_method == draco::MESH_EDGEBREAKER_ENCODING) {
+    bool v20 = version >= DRACO_BITSTREAM_VERSION(2, 0);
+    uint8_t traversal;
+    uint32_t new_vertices;
+    if (!b.Decode(&traversal)) return false;
+    if (!v22 && !read_count(&b, v20, &new_vertices)) return false;
+    if (!read_count(&b, v20, &v) || !read_count(&b, v20, &f)) return false;
+  } else {
+    return false;
+  }
+  *nv = v;
+  *nf = f;
+  return true;
+}
 
 int decode_impl(const uint8_t *buf, size_t len, const sm_limits *lim, sm_mesh **out,
                 sm_error *err) {
@@ -41,6 +90,11 @@ int decode_impl(const uint8_t *buf, size_t len, const sm_limits *lim, sm_mesh **
                         "draco: the bitstream is a point cloud, not a mesh (no faces)");
   if (type.value() != draco::TRIANGULAR_MESH)
     return sm_error_set(err, SM_EFORMAT, "draco: unknown geometry type %d", (int)type.value());
+  int64_t announced_v, announced_f;
+  if (peek_counts(buf, len, &announced_v, &announced_f)) {
+    int rc = sm_limits_check(lim, announced_v, announced_f, err);
+    if (rc) return rc;
+  }
 
   db.Init(reinterpret_cast<const char *>(buf), len);
   draco::Decoder dec;
