@@ -523,6 +523,12 @@ static int ply_header_line(tcur *c, ply_header *h, int *done, sm_error *err) {
     else if (wordeq(w, n, "binary_little_endian")) h->format = PLY_BLE;
     else if (wordeq(w, n, "binary_big_endian")) h->format = PLY_BBE;
     else return syntax_error(c, err, "unknown PLY format");
+    /* PLY has only version 1.0. Checked here because OpenMesh's reader, which sees binary
+     * files first, loops forever on a version its stream cannot parse as a number. */
+    n = header_word(c, &w);
+    char *q;
+    if (n == 0 || strtod(w, &q) != 1.0 || q != w + n)
+      return syntax_error(c, err, "PLY format version is not 1.0");
     return 0;
   }
   if (wordeq(w, n, "element")) return ply_element(c, h, err);
@@ -970,27 +976,59 @@ static int parse_content(int fmt, const char *name, const uint8_t *b, size_t n,
   return rc ? prefix_error(err, rc, name) : 0;
 }
 
+/* Parses buf[len] as a file called base (format fmt, gzip'd if gz). The text parsers stop
+ * at a NUL (strtod), so buf[len] must be one: sm_read_file_bytes and gunzip both add it. */
+static int read_terminated(const char *base, int fmt, int gz, const uint8_t *buf, size_t len,
+                           const sm_limits *lim, sm_mesh **out, sm_error *err) {
+  uint8_t *data = NULL;
+  if (gz) {
+    int rc = gunzip(base, buf, len, SM_IO_MAX_BYTES, &data, &len, err);
+    if (rc) return rc;
+    buf = data;
+  }
+  int rc = len == 0 ? sm_error_set(err, SM_EFORMAT, "%s: file is empty", base)
+                    : parse_content(fmt, base, buf, len, lim, out, err);
+  free(data);
+  return rc;
+}
+
+static int format_or_error(const char *base, int *gz, sm_error *err) {
+  int fmt = format_of(base, gz);
+  if (fmt == FMT_UNKNOWN)
+    sm_error_set(err, SM_EFORMAT, "%s: unknown mesh file extension (want .off .obj .ply .stl .drc, optionally .gz)", base);
+  return fmt;
+}
+
+int sm_mesh_read_buffer(const char *name, const uint8_t *buf, size_t len, const sm_limits *lim,
+                        sm_mesh **out, sm_error *err) {
+  if (!name || (!buf && len) || !out)
+    return sm_error_set(err, SM_EINVAL, "sm_mesh_read_buffer: null argument");
+  *out = NULL;
+  const char *base = strrchr(name, '/') ? strrchr(name, '/') + 1 : name;
+  int gz, fmt = format_or_error(base, &gz, err);
+  if (fmt == FMT_UNKNOWN) return SM_EFORMAT;
+  if (len > SM_IO_MAX_BYTES)
+    return sm_error_set(err, SM_ELIMIT, "%s: more than %zu bytes", base, (size_t)SM_IO_MAX_BYTES);
+  uint8_t *copy = malloc(len + 1); /* the caller's bytes need not end with a NUL */
+  if (!copy) return sm_error_set(err, SM_ENOMEM, "%s: cannot allocate %zu bytes", base, len + 1);
+  if (len) memcpy(copy, buf, len);
+  copy[len] = 0;
+  int rc = read_terminated(base, fmt, gz, copy, len, lim, out, err);
+  free(copy);
+  return rc;
+}
+
 int sm_mesh_read_file(const char *path, const sm_limits *lim, sm_mesh **out, sm_error *err) {
   if (!path || !out) return sm_error_set(err, SM_EINVAL, "sm_mesh_read_file: null argument");
   *out = NULL;
   const char *base = strrchr(path, '/') ? strrchr(path, '/') + 1 : path;
-  int gz, fmt = format_of(base, &gz);
-  if (fmt == FMT_UNKNOWN)
-    return sm_error_set(err, SM_EFORMAT, "%s: unknown mesh file extension (want .off .obj .ply .stl .drc, optionally .gz)", base);
-  uint8_t *raw = NULL, *data = NULL;
-  size_t rawlen = 0, len = 0;
+  int gz, fmt = format_or_error(base, &gz, err);
+  if (fmt == FMT_UNKNOWN) return SM_EFORMAT;
+  uint8_t *raw = NULL;
+  size_t rawlen = 0;
   int rc = sm_read_file_bytes(path, SM_IO_MAX_BYTES, &raw, &rawlen, err);
   if (rc) return rc;
-  if (gz) {
-    rc = gunzip(base, raw, rawlen, SM_IO_MAX_BYTES, &data, &len, err);
-    free(raw);
-    if (rc) return rc;
-  } else {
-    data = raw;
-    len = rawlen;
-  }
-  if (len == 0) rc = sm_error_set(err, SM_EFORMAT, "%s: file is empty", base);
-  else rc = parse_content(fmt, base, data, len, lim, out, err);
-  free(data);
+  rc = read_terminated(base, fmt, gz, raw, rawlen, lim, out, err);
+  free(raw);
   return rc;
 }

@@ -24,6 +24,12 @@
  * (case-insensitive; an extra ".gz" means gzip). */
 int sm_mesh_read_file(const char *path, const sm_limits *lim, sm_mesh **out, sm_error *err);
 
+/* The same on a whole file's content already in memory (buf borrowed): the format is
+ * chosen by `name`'s extension exactly as above (".gz" included) and name prefixes the
+ * messages. The bytes are copied once (the text parsers need a terminating NUL); at most
+ * 2 GiB like a file (SM_ELIMIT). For callers that hold the bytes, and the fuzz harnesses. */
+int sm_mesh_read_buffer(const char *name, const uint8_t *buf, size_t len, const sm_limits *lim,
+                        sm_mesh **out, sm_error *err);
 /* Decodes a Draco mesh bitstream (versions 1.x and 2.x, sequential or edgebreaker).
  * buf is borrowed. Edgebreaker reorders (and at non-manifold vertices duplicates) points:
  * the result's vertices are the decoded points in decoded order. */

@@ -15,6 +15,8 @@ PKGS=(
   liblapacke-dev libopenblas-dev  # dense algebra
   python3 python3-numpy python3-scipy  # reference evaluator in ../shared/tools
   python3-matplotlib       # the evaluation suite's plots (bench/eval)
+  clang libclang-rt-dev    # fuzz harnesses: libFuzzer + ASan/UBSan (tests/fuzz/run.sh)
+  afl++                    # the same harnesses under AFL++ (tests/fuzz/README.md)
 )
 
 missing=()

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The README's test command: installs the Debian dependencies, builds shapematch twice
-# (optimized, and with AddressSanitizer + UBSan), and runs the whole ctest suite in both.
+# (optimized, and with AddressSanitizer + UBSan), and runs the whole ctest suite in both,
+# then runs each fuzz harness briefly (tests/fuzz/run.sh, a third build with clang).
 # Data-dependent tests use ../shared/data when it exists and are skipped otherwise.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -18,6 +19,16 @@ cmake --build build-asan -j"$jobs"
 # ASan they would take most of CI's time, so that pass runs their synthetic part only.
 (cd build-asan && SM_TEST_SYNTHETIC_ONLY=1 ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 \
    UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 ctest --output-on-failure -j"$jobs")
+
+# Fuzzing: each harness of tests/fuzz for a few seconds (libFuzzer, clang, ASan + UBSan,
+# in build-fuzz), on top of the replay ctests both passes above ran; the long runs are in
+# docs/RELIABILITY.md section 2. install-deps.sh installs clang and libFuzzer, so a machine
+# without them fails here (run.sh says why); SM_CI_SKIP_FUZZ=1 skips the step on purpose.
+if [ "${SM_CI_SKIP_FUZZ:-0}" = 1 ]; then
+  echo "fuzz: skipped (SM_CI_SKIP_FUZZ=1)"
+else
+  SM_FUZZ_JOBS="$jobs" ./tests/fuzz/run.sh "${SM_CI_FUZZ_SECONDS:-12}"
+fi
 
 # The evaluation suite's regression check: one pair at two k values and a 2-class subset
 # through the daemon, against bounds from the full run (bench/eval/ci_bounds.json).
