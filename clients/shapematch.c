@@ -545,8 +545,12 @@ static int take_server(int *argc, char **argv, const char **addr) {
   return 0;
 }
 
+/* "shapematch: WHAT: MESSAGE", WHAT left out when the message already names it (the
+ * core's file errors do), so that nothing is said twice. */
 static int client_fail(const char *what, const sm_client_error *e) {
-  fprintf(stderr, "shapematch: %s: %s\n", what, e->msg[0] ? e->msg : sm_client_strerror(e->code));
+  const char *msg = e->msg[0] ? e->msg : sm_client_strerror(e->code);
+  if (strstr(msg, what)) fprintf(stderr, "shapematch: %s\n", msg);
+  else fprintf(stderr, "shapematch: %s: %s\n", what, msg);
   return 1;
 }
 

@@ -627,7 +627,7 @@ int sm_client_file_draco(const char *path, uint8_t **buf, size_t *len, sm_client
   if (ends_with_ci(path, ".drc")) {
     /* As is: the server decodes it as sm_mesh_read_file does locally, same numbering. */
     if (sm_read_file_bytes(path, (size_t)UINT32_MAX - 64, buf, len, &e))
-      return seterr(err, SM_CLIENT_EMESH, "%s: %s", path, e.msg);
+      return seterr(err, SM_CLIENT_EMESH, "%s", e.msg);
     if (!*len) {
       free(*buf);
       *buf = NULL;
@@ -636,10 +636,11 @@ int sm_client_file_draco(const char *path, uint8_t **buf, size_t *len, sm_client
     return 0;
   }
   sm_mesh *m = NULL;
-  if (sm_mesh_read_file(path, NULL, &m, &e)) return seterr(err, SM_CLIENT_EMESH, "%s: %s", path, e.msg);
+  /* The core's messages already say what failed and, for I/O, name the file. */
+  if (sm_mesh_read_file(path, NULL, &m, &e)) return seterr(err, SM_CLIENT_EMESH, "%s", e.msg);
   int rc = sm_draco_encode(m, 0, buf, len, &e);
   sm_mesh_destroy(m);
-  if (rc) return seterr(err, SM_CLIENT_EMESH, "%s: draco encode: %s", path, e.msg);
+  if (rc) return seterr(err, SM_CLIENT_EMESH, "%s", e.msg);
   return 0;
 }
 

@@ -944,6 +944,21 @@ static void test_daemon(void) {
   free(put);
   free(abytes);
 
+  /* A file the CLI cannot encode (NaN coordinate): one clear line, nothing said twice. */
+  snprintf(cmd, sizeof cmd,
+           "cd %s && printf 'OFF\\n3 1 0\\n0 0 0\\n1 0 nan\\n0 1 0\\n3 0 1 2\\n' > nan.off && "
+           "%s put nan.off --server %s 2> nan.err", dir, cli, srv);
+  CHECK(run(cmd) != 0);
+  {
+    snprintf(path, sizeof path, "%s/nan.err", dir);
+    char *ne = slurp(path, NULL), *first;
+    CHECK_MSG(ne && (first = strstr(ne, "nan.off")) && !strstr(first + 7, "nan.off") &&
+                  (first = strstr(ne, "draco encode")) && !strstr(first + 12, "draco encode") &&
+                  strstr(ne, "not a finite float"),
+              "put nan.off stderr: %s", ne ? ne : "");
+    free(ne);
+  }
+
   /* match: the same map as the local computation on the same floats. The CLI uploads a.off
    * Draco-encoded (float32 coordinates, same bytes as `encode a.off -o a.drc`), so the
    * server's map of the OFF pair must equal the local map of the .drc pair; the local map
