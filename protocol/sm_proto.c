@@ -999,6 +999,7 @@ const char *sm_proto_status_name(uint16_t st) {
   case SM_ST_UNAUTHORIZED: return "UNAUTHORIZED";
   case SM_ST_TIMEOUT: return "TIMEOUT";
   case SM_ST_TOO_MANY_CONNECTIONS: return "TOO_MANY_CONNECTIONS";
+  case SM_ST_OVERLOADED: return "OVERLOADED";
   default: return sm_proto_status_is_fatal(st) ? "UNKNOWN_FATAL" : "UNKNOWN";
   }
 }

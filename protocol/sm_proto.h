@@ -134,7 +134,8 @@ enum sm_proto_status {
   SM_ST_PROTOCOL_ERROR = 0x8007,
   SM_ST_UNAUTHORIZED = 0x8008,
   SM_ST_TIMEOUT = 0x8009,
-  SM_ST_TOO_MANY_CONNECTIONS = 0x800A
+  SM_ST_TOO_MANY_CONNECTIONS = 0x800A,
+  SM_ST_OVERLOADED = 0x800B
 };
 
 static inline int sm_proto_status_is_fatal(uint16_t st) { return (st & SM_ST_FATAL_) != 0; }

@@ -37,6 +37,7 @@ void sm_srv_config_default(sm_srv_config *c) {
   long nc = sysconf(_SC_NPROCESSORS_ONLN);
   c->threads = nc > 0 ? (int)nc : 1;
   c->cache_bytes = 1024ull << 20;
+  c->buffer_budget = 1024ull << 20;
   c->max_payload = 256u << 20;
   c->max_vertices = 2000000;
   c->max_faces = 4000000;
@@ -63,6 +64,7 @@ static void usage(FILE *f) {
   fprintf(f,
           "usage: shapematchd [--config FILE] [--port N] [--bind ADDR] [--data-dir DIR]\n"
           "                   [--threads N] [--cache-mb MB] [--max-payload-mb MB]\n"
+          "                   [--buffer-budget-mb MB]\n"
           "                   [--token TOKEN | --token-file FILE] [--metrics-port N]\n"
           "                   [--max-conns N] [--max-inflight N] [--queue N]\n"
           "                   [--idle-timeout-ms MS] [--drain-ms MS] [--max-vertices N]\n"
@@ -76,6 +78,10 @@ static void usage(FILE *f) {
           "  --port 0 picks a free port (logged as msg=listening port=N);\n"
           "  --data-dir defaults to $XDG_STATE_HOME/shapematch or ~/.local/state/shapematch;\n"
           "  --default-k sets the default basis size and MATCH k1 (default 100, >= 20);\n"
+          "  --buffer-budget-mb bounds the bytes buffered for all connections together (read\n"
+          "    buffers, queued answers, request bodies waiting for a worker; default 1024, on\n"
+          "    top of --cache-mb): past it the greediest connection is closed (GOAWAY\n"
+          "    OVERLOADED);\n"
           "  --prepare-timeout-ms bounds the preparation (cleaning, bases, descriptors) of\n"
           "    one shape (default 300000; 0 = none): past it the request fails with\n"
           "    LIMIT_EXCEEDED naming the shape;\n"
@@ -151,6 +157,7 @@ static int apply_opt(const char *key, const char *v, sm_srv_config *c, const cha
   NUM("threads", 1, 1024, c->threads)
   NUM("cache-mb", 1, 1ull << 24, c->cache_bytes)
   NUM("max-payload-mb", 1, 4095, c->max_payload)
+  NUM("buffer-budget-mb", 16, 1ull << 24, c->buffer_budget)
   NUM("metrics-port", 0, 65535, c->metrics_port)
   NUM("max-conns", 1, 1000000, c->max_conns)
   NUM("max-inflight", 1, 65536, c->max_inflight)
@@ -177,6 +184,7 @@ static int apply_opt(const char *key, const char *v, sm_srv_config *c, const cha
   }
   if (!strcmp(key, "cache-mb")) c->cache_bytes = u << 20;
   if (!strcmp(key, "max-payload-mb")) c->max_payload = (uint32_t)(u << 20);
+  if (!strcmp(key, "buffer-budget-mb")) c->buffer_budget = u << 20;
   return 0;
 }
 
@@ -349,9 +357,10 @@ int main(int argc, char **argv) {
     return 1;
   }
   sm_log("info", "listening", " port=%d bind=%s threads=%d cache_mb=%llu max_payload=%u "
-         "metrics_port=%d auth=%d default_k=%d",
+         "metrics_port=%d auth=%d default_k=%d buffer_budget_mb=%llu",
          port, s.cfg.bind, s.cfg.threads, (unsigned long long)(s.cfg.cache_bytes >> 20),
-         s.cfg.max_payload, mport, s.cfg.has_token, s.cfg.default_k);
+         s.cfg.max_payload, mport, s.cfg.has_token, s.cfg.default_k,
+         (unsigned long long)(s.cfg.buffer_budget >> 20));
 
   int rc = sm_srv_run(&s, lfd, mfd);
   if (rc) {

@@ -37,6 +37,8 @@ typedef struct sm_srv_config {
   char data_dir[SM_SRV_PATH_MAX];
   int threads;              /* --threads, default = cores */
   uint64_t cache_bytes;     /* --cache-mb: in-memory prepared shapes */
+  uint64_t buffer_budget;   /* --buffer-budget-mb: every connection's buffered bytes (read
+                               buffers, queued answers, request bodies held by jobs) */
   uint32_t max_payload;     /* --max-payload-mb */
   uint32_t max_vertices, max_faces;
   uint32_t max_inflight, max_batch_items, max_query_k, max_k;
@@ -71,6 +73,10 @@ typedef struct sm_server {
   int draining;             /* SIGTERM/SIGINT seen: GOAWAY sent, no accepts */
   uint64_t drain_deadline_ns;
   int cancelled_all;        /* drain budget spent: every job's cancel flag set */
+  /* The buffer budget (sm_srv_conn.h, "Memory"): bytes charged now, the most since the
+   * last malloc_trim, and connections whose reading waits for the budget. */
+  uint64_t buf_used, buf_trim_mark;
+  int n_budget_blocked;
 } sm_server;
 
 /* Set by the SIGTERM/SIGINT handler; the loop polls it. */

@@ -15,10 +15,13 @@
 #include "sm_srv_store.h"
 
 #define RBUF_MIN 4096u
-#define RBUF_KEEP (1u << 20)   /* shrink the read buffer back after a larger frame */
 #define STEAL_MIN (64u << 10)  /* hand a large frame's buffer to its job instead of copying */
 #define LINGER_NS 2000000000ull
 #define BUSY_RETRY_MS 100u
+#define CHUNK 4096u            /* small answers are packed into chunks of this size */
+#define SMALL_FRAME 512u
+#define MALLOC_OVERHEAD 16u    /* charged per allocation: what malloc keeps beside it */
+#define SHED_RETRY_MS 1000u
 
 sm_wbuf *sm_wbuf_new(size_t len) {
   sm_wbuf *w = malloc(sizeof *w + len);
@@ -26,25 +29,123 @@ sm_wbuf *sm_wbuf_new(size_t len) {
   w->next = NULL;
   w->len = len;
   w->off = 0;
+  w->cap = len;
   return w;
 }
 
-static void wq_push(sm_conn *c, sm_wbuf *w) {
-  if (!w) return;
+/* ------------------------------------------------------------------ budget */
+
+static void charge(sm_server *s, size_t *acct, size_t n) {
+  *acct += n;
+  s->buf_used += n;
+  if (s->buf_used > s->buf_trim_mark) s->buf_trim_mark = s->buf_used;
+  sm_met_add(&sm_met.buffered, n);
+  sm_met_max(&sm_met.buffered_peak, s->buf_used);
+}
+
+static void release(sm_server *s, size_t *acct, size_t n) {
+  *acct -= n;
+  s->buf_used -= n;
+  sm_met_sub(&sm_met.buffered, n);
+}
+
+static size_t wbuf_cost(const sm_wbuf *w) { return sizeof *w + w->cap + MALLOC_OVERHEAD; }
+
+/* Rule 1's threshold: lower once half the budget is in use. */
+static size_t wq_cap(const sm_server *s) {
+  return s->buf_used > s->cfg.buffer_budget / 2 ? SM_CONN_WQ_TIGHT : SM_CONN_WQ_HIGH;
+}
+
+static void rbuf_free(sm_server *s, sm_conn *c) {
+  if (c->rcap) release(s, &c->held, c->rcap + MALLOC_OVERHEAD);
+  free(c->rbuf);
+  c->rbuf = NULL;
+  c->rcap = 0;
+  c->rlen = 0;
+  c->rneed = 0;
+}
+
+/* Resizes the read buffer to ncap (>= rlen), within the budget when it grows. Returns 0,
+ * or -1: no room (rule 2: the caller stops reading) or out of memory (errno ENOMEM). */
+static int rbuf_resize(sm_server *s, sm_conn *c, size_t ncap) {
+  size_t old = c->rcap ? c->rcap + MALLOC_OVERHEAD : 0;
+  if (ncap > c->rcap && s->buf_used - old + ncap + MALLOC_OVERHEAD > s->cfg.buffer_budget) {
+    errno = 0;
+    return -1;
+  }
+  uint8_t *nb = realloc(c->rbuf, ncap);
+  if (!nb) {
+    errno = ENOMEM;
+    return -1;
+  }
+  if (old) release(s, &c->held, old);
+  charge(s, &c->held, ncap + MALLOC_OVERHEAD);
+  c->rbuf = nb;
+  c->rcap = ncap;
+  return 0;
+}
+
+/* Appends w to the queue; an answer of at most SMALL_FRAME bytes is copied into the tail
+ * chunk instead (a pipelined PING costs its 32 bytes, not a malloc of its own). */
+static void wq_push(sm_server *s, sm_conn *c, sm_wbuf *w) {
   w->next = NULL;
+  if (w->len <= SMALL_FRAME) {
+    sm_wbuf *t = c->wq_tail;
+    if (!t || t->cap - t->len < w->len) {
+      t = sm_wbuf_new(CHUNK);
+      if (t) {
+        t->len = 0;
+        if (c->wq_tail) c->wq_tail->next = t;
+        else c->wq_head = t;
+        c->wq_tail = t;
+        charge(s, &c->held, wbuf_cost(t));
+      }
+    }
+    if (t && t->cap - t->len >= w->len) {
+      memcpy(t->data + t->len, w->data, w->len);
+      t->len += w->len;
+      c->wq_bytes += w->len;
+      free(w);
+      return;
+    }
+  }
   if (c->wq_tail) c->wq_tail->next = w;
   else c->wq_head = w;
   c->wq_tail = w;
   c->wq_bytes += w->len;
+  charge(s, &c->held, wbuf_cost(w));
 }
 
-static void wq_free(sm_conn *c) {
-  for (sm_wbuf *w = c->wq_head, *n; w; w = n) {
-    n = w->next;
-    free(w);
+static void wq_pop(sm_server *s, sm_conn *c) {
+  sm_wbuf *w = c->wq_head;
+  c->wq_head = w->next;
+  if (!c->wq_head) c->wq_tail = NULL;
+  c->wq_bytes -= w->len - w->off;
+  release(s, &c->held, wbuf_cost(w));
+  free(w);
+}
+
+static void wq_free(sm_server *s, sm_conn *c) {
+  while (c->wq_head) wq_pop(s, c);
+}
+
+/* Drops the answers not yet started; a partly sent one stays (the peer must be able to
+ * parse the stream up to the GOAWAY that follows). */
+static void wq_drop_unsent(sm_server *s, sm_conn *c) {
+  sm_wbuf *h = c->wq_head;
+  if (h && h->off == 0) {
+    wq_free(s, c);
+    return;
   }
-  c->wq_head = c->wq_tail = NULL;
-  c->wq_bytes = 0;
+  if (!h) return;
+  while (h->next) {
+    sm_wbuf *n = h->next;
+    h->next = n->next;
+    c->wq_bytes -= n->len;
+    release(s, &c->held, wbuf_cost(n));
+    free(n);
+  }
+  c->wq_tail = h;
 }
 
 size_t sm_error_payload(uint8_t *out, uint32_t retry, uint32_t detail, const char *msg) {
@@ -84,7 +185,7 @@ sm_conn *sm_conn_new(sm_server *s, int fd, int kind, const char *peer) {
   snprintf(c->peer, sizeof c->peer, "%s", peer);
   c->limit = SM_PROTO_HELLO_MAX_PAYLOAD;
   c->version = SM_PROTO_VERSION_HELLO;
-  c->last_active_ns = sm_srv_now_ns();
+  c->born_ns = c->last_active_ns = sm_srv_now_ns();
   c->next = s->conns;
   if (s->conns) s->conns->prev = c;
   s->conns = c;
@@ -103,8 +204,9 @@ static void conn_free(sm_server *s, sm_conn *c) {
   if (c->prev) c->prev->next = c->next;
   else s->conns = c->next;
   if (c->next) c->next->prev = c->prev;
-  wq_free(c);
-  free(c->rbuf);
+  wq_free(s, c);
+  rbuf_free(s, c);
+  if (c->budget_blocked) s->n_budget_blocked--;
   free(c->inflight);
   free(c);
 }
@@ -132,7 +234,8 @@ void sm_conn_close(sm_server *s, sm_conn *c) {
     c->fd = -1;
   }
   c->state = SM_CONN_DEAD;
-  wq_free(c);
+  wq_free(s, c);
+  rbuf_free(s, c);
   sm_conn_cancel_all(c, 1); /* closing a connection cancels its requests */
   if (c->kind == SM_H_CONN)
     sm_log("info", "connection closed", " conn=%llu peer=%s inflight=%u",
@@ -149,7 +252,10 @@ void sm_conn_sweep(sm_server *s) {
 void sm_conn_update_events(sm_server *s, sm_conn *c) {
   if (c->fd < 0) return;
   uint32_t m = 0;
-  if (c->state == SM_CONN_OPEN && c->wq_bytes < SM_CONN_WQ_HIGH) m |= EPOLLIN;
+  int paused = c->state == SM_CONN_OPEN && c->wq_bytes >= wq_cap(s);
+  if (paused && !c->read_paused) sm_met_add(&sm_met.read_pauses, 1);
+  c->read_paused = paused;
+  if (c->state == SM_CONN_OPEN && !paused && !c->budget_blocked) m |= EPOLLIN;
   if (c->state == SM_CONN_LINGER) m |= EPOLLIN;
   if (c->wq_head) m |= EPOLLOUT;
   if (m != c->ev_mask) {
@@ -164,9 +270,11 @@ static void queue_frame(sm_server *s, sm_conn *c, sm_wbuf *w) {
     free(w);
     return;
   }
-  wq_push(c, w);
+  wq_push(s, c, w);
   sm_conn_update_events(s, c);
 }
+
+void sm_conn_queue(sm_server *s, sm_conn *c, sm_wbuf *w) { queue_frame(s, c, w); }
 
 void sm_conn_send_error(sm_server *s, sm_conn *c, uint8_t opcode, uint32_t rid,
                         uint16_t status, uint32_t retry, uint32_t detail, const char *msg) {
@@ -184,7 +292,11 @@ void sm_conn_fatal(sm_server *s, sm_conn *c, uint16_t status, uint32_t rid, uint
   leave_active(s, c);
   c->state = SM_CONN_FLUSH_CLOSE;
   sm_conn_cancel_all(c, 1);
-  c->rlen = 0;
+  rbuf_free(s, c); /* nothing more is read but the lingering discard */
+  if (c->budget_blocked) {
+    c->budget_blocked = 0;
+    s->n_budget_blocked--;
+  }
   sm_conn_update_events(s, c);
   if (!c->wq_head) sm_conn_on_writable(s, c);
 }
@@ -195,6 +307,8 @@ void sm_conn_goaway(sm_server *s, sm_conn *c) {
   queue_frame(s, c, sm_error_frame(c->version, SM_OP_GOAWAY, 0, SM_ST_OK, 1000, s->cfg.drain_ms,
                                    "server shutting down"));
 }
+
+static void process(sm_server *s, sm_conn *c);
 
 /* ------------------------------------------------------------------ write side */
 
@@ -212,13 +326,13 @@ void sm_conn_on_writable(sm_server *s, sm_conn *c) {
     sm_met_add(&sm_met.bytes_out, (uint64_t)n);
     w->off += (size_t)n;
     c->wq_bytes -= (size_t)n;
-    if (w->off == w->len) {
-      c->wq_head = w->next;
-      if (!c->wq_head) c->wq_tail = NULL;
-      free(w);
-    }
+    if (w->off == w->len) wq_pop(s, c);
   }
   if (c->fd < 0) return;
+  if (c->kind == SM_H_CONN && c->state == SM_CONN_OPEN && c->rlen && c->wq_bytes < wq_cap(s)) {
+    process(s, c); /* frames held back by rule 1 */
+    if (c->state != SM_CONN_OPEN || c->fd < 0) return;
+  }
   if (!c->wq_head && c->state == SM_CONN_FLUSH_CLOSE) {
     /* Half-close, then read and discard for a moment: closing with unread input would
      * make the kernel send RST, which can destroy the GOAWAY frame before it is read. */
@@ -326,9 +440,11 @@ static void submit_job(sm_server *s, sm_conn *c, const sm_proto_frame *f, size_t
     sm_conn_send_error(s, c, f->h.opcode, rid, SM_ST_INTERNAL, 0, 0, "out of memory");
     return;
   }
-  if (steal) { /* the frame is the whole buffer: hand it over */
+  if (steal) { /* the frame is the whole buffer: hand it over, with its charge */
     j->buf = c->rbuf;
     j->body = f->body;
+    j->charged = c->rcap + MALLOC_OVERHEAD;
+    release(s, &c->held, j->charged);
     c->rbuf = NULL;
     c->rcap = 0;
   } else {
@@ -340,7 +456,9 @@ static void submit_job(sm_server *s, sm_conn *c, const sm_proto_frame *f, size_t
     }
     memcpy(j->buf, f->body, f->body_len);
     j->body = j->buf;
+    j->charged = (size_t)f->body_len + MALLOC_OVERHEAD;
   }
+  charge(s, &c->job_bytes, j->charged + sizeof *j);
   (void)frame_len;
   j->body_len = f->body_len;
   j->base.run = sm_exec_run;
@@ -353,6 +471,7 @@ static void submit_job(sm_server *s, sm_conn *c, const sm_proto_frame *f, size_t
   j->recv_ns = sm_srv_now_ns();
   int rc = sm_pool_submit(s->pool, &j->base);
   if (rc) {
+    release(s, &c->job_bytes, j->charged + sizeof *j);
     free(j->buf);
     free(j);
     if (rc == SM_POOL_EFULL) {
@@ -488,10 +607,11 @@ static uint32_t le32(const uint8_t *p) {
   return (uint32_t)p[0] | (uint32_t)p[1] << 8 | (uint32_t)p[2] << 16 | (uint32_t)p[3] << 24;
 }
 
-/* Handles every complete frame at the start of rbuf. */
+/* Handles every complete frame at the start of rbuf, until rule 1 pauses the connection. */
 static void process(sm_server *s, sm_conn *c) {
   size_t off = 0;
   while (c->state == SM_CONN_OPEN && c->rbuf && off < c->rlen) {
+    if (c->wq_bytes >= wq_cap(s)) break; /* rule 1: resumed by sm_conn_on_writable */
     const uint8_t *p = c->rbuf + off;
     size_t avail = c->rlen - off;
     sm_proto_header h;
@@ -512,17 +632,10 @@ static void process(sm_server *s, sm_conn *c) {
     }
     size_t total = SM_PROTO_HEADER_LEN + (size_t)h.payload_len;
     if (avail < total) {
-      if (off == 0 && c->rcap < total) { /* grow only after the header was accepted */
-        uint8_t *nb = realloc(c->rbuf, total);
-        if (!nb) {
-          sm_conn_fatal(s, c, SM_ST_FRAME_TOO_LARGE, h.request_id, 0, c->limit, "out of memory");
-          return;
-        }
-        c->rbuf = nb;
-        c->rcap = total;
-      }
+      c->rneed = total; /* rule 2: the buffer grows as the payload arrives */
       break;
     }
+    c->rneed = 0;
     sm_proto_frame f;
     ptrdiff_t fr = sm_proto_parse_frame(p, avail, c->limit, &f);
     if (fr < 0) {
@@ -544,10 +657,32 @@ static void process(sm_server *s, sm_conn *c) {
     c->rlen -= off;
     c->frame_start_ns = sm_srv_now_ns(); /* a partial frame's clock starts now */
   }
-  if (c->rlen == 0 && c->rcap > RBUF_KEEP) {
-    free(c->rbuf);
-    c->rbuf = NULL;
-    c->rcap = 0;
+  /* Give memory back as soon as a large buffer is no longer needed. */
+  if (c->rlen == 0 && c->rcap > RBUF_MIN) rbuf_free(s, c);
+  else if (c->rcap > 4 * RBUF_MIN && c->rlen < c->rcap / 4 && c->rneed < c->rcap / 4)
+    (void)rbuf_resize(s, c, c->rlen > RBUF_MIN ? c->rlen : RBUF_MIN);
+}
+
+/* The next read buffer size: the first RBUF_MIN, then growing, but never beyond the frame
+ * being received (its header is valid: rneed) nor the connection's payload limit. */
+static size_t rbuf_next_cap(const sm_conn *c) {
+  if (!c->rbuf) return RBUF_MIN;
+  /* 1.5x: the charge stays close to the bytes that arrived; realloc of a large
+   * (mmapped) buffer moves pages, not bytes. */
+  size_t ncap = c->rcap + c->rcap / 2;
+  if (c->rneed > c->rcap && ncap > c->rneed) ncap = c->rneed;
+  size_t maxcap = (size_t)SM_PROTO_HEADER_LEN + c->limit;
+  if (ncap > maxcap) ncap = maxcap > c->rcap ? maxcap : c->rcap + RBUF_MIN;
+  return ncap;
+}
+
+/* Rule 2: the budget has no room for this buffer to grow: stop reading it until
+ * sm_conn_budget makes room. */
+static void budget_block(sm_server *s, sm_conn *c) {
+  if (!c->budget_blocked) {
+    c->budget_blocked = 1;
+    s->n_budget_blocked++;
+    sm_met_add(&sm_met.budget_blocks, 1);
   }
 }
 
@@ -565,20 +700,17 @@ void sm_conn_on_readable(sm_server *s, sm_conn *c) {
   }
   if (c->state != SM_CONN_OPEN) return;
   for (int rounds = 0; rounds < 16 && c->state == SM_CONN_OPEN; rounds++) {
+    if (c->budget_blocked || (c->kind == SM_H_CONN && c->wq_bytes >= wq_cap(s))) break;
     if (!c->rbuf || c->rlen == c->rcap) {
-      /* Before the header is complete, read at most what a header needs beyond a
-       * minimum buffer; the payload size decides any further growth (process()). */
-      size_t ncap = c->rcap ? c->rcap * 2 : RBUF_MIN;
-      size_t maxcap = (size_t)SM_PROTO_HEADER_LEN + c->limit;
-      if (ncap > maxcap) ncap = maxcap > c->rcap ? maxcap : c->rcap + RBUF_MIN;
-      if (c->rbuf && c->rlen == c->rcap && ncap <= c->rcap) ncap = c->rcap + RBUF_MIN;
-      uint8_t *nb = realloc(c->rbuf, ncap);
-      if (!nb) {
-        sm_conn_fatal(s, c, SM_ST_FRAME_TOO_LARGE, 0, 0, c->limit, "out of memory");
-        return;
+      if (rbuf_resize(s, c, rbuf_next_cap(c))) {
+        if (errno == ENOMEM) {
+          sm_conn_fatal(s, c, SM_ST_OVERLOADED, 0, SHED_RETRY_MS, (uint32_t)(c->held >> 10),
+                        "out of memory for the read buffer");
+          return;
+        }
+        budget_block(s, c);
+        break;
       }
-      c->rbuf = nb;
-      c->rcap = ncap;
     }
     ssize_t n = recv(c->fd, c->rbuf + c->rlen, c->rcap - c->rlen, 0);
     if (n < 0 && errno == EINTR) continue;
@@ -594,7 +726,6 @@ void sm_conn_on_readable(sm_server *s, sm_conn *c) {
     c->rlen += (size_t)n;
     if (c->kind == SM_H_HTTP) return; /* handled by the loop */
     process(s, c);
-    if (c->wq_bytes >= SM_CONN_WQ_HIGH) break; /* backpressure */
   }
   if (c->fd >= 0) sm_conn_update_events(s, c);
 }
@@ -613,6 +744,7 @@ void sm_conn_on_done(sm_server *s, sm_srv_out *o) {
     int i = inflight_find(c, j->rid);
     if (i >= 0) c->inflight[i] = c->inflight[--c->n_inflight];
     sm_met_sub(&sm_met.inflight, 1);
+    release(s, &c->job_bytes, j->charged + sizeof *j);
     free(j->buf);
     free(j);
     if (c->state == SM_CONN_OPEN && s->draining) sm_conn_on_writable(s, c);
@@ -632,7 +764,14 @@ void sm_conn_tick(sm_server *s, uint64_t now) {
       sm_conn_close(s, c); /* the peer does not read its GOAWAY */
       continue;
     }
-    if (c->state != SM_CONN_OPEN || !idle) continue;
+    if (c->state != SM_CONN_OPEN) continue;
+    if (c->kind == SM_H_CONN && !c->hello_done &&
+        now > c->born_ns + (uint64_t)SM_CONN_HELLO_TIMEOUT_MS * 1000000ull) {
+      sm_conn_fatal(s, c, SM_ST_TIMEOUT, 0, 0, SM_CONN_HELLO_TIMEOUT_MS,
+                    "HELLO not completed in time");
+      continue;
+    }
+    if (!idle) continue;
     if (c->rlen > 0 && now > c->frame_start_ns + idle) {
       sm_conn_fatal(s, c, SM_ST_TIMEOUT, 0, 0, s->cfg.idle_timeout_ms,
                     "frame not completed within the idle timeout");
@@ -641,4 +780,92 @@ void sm_conn_tick(sm_server *s, uint64_t now) {
       sm_conn_fatal(s, c, SM_ST_TIMEOUT, 0, 0, s->cfg.idle_timeout_ms, "idle timeout");
     }
   }
+}
+
+/* ------------------------------------------------------------------ budget and limits */
+
+/* The connection whose closing gives back the most: its buffers and its jobs' bodies
+ * (freed when the cancelled jobs stop). NULL if none holds anything. */
+static sm_conn *greediest(sm_server *s) {
+  sm_conn *g = NULL;
+  size_t most = 0;
+  for (sm_conn *c = s->conns; c; c = c->next) {
+    if (c->state == SM_CONN_DEAD || c->held + c->job_bytes <= most) continue;
+    if (c->state != SM_CONN_OPEN && c->held == 0) continue; /* its jobs are cancelled */
+    g = c;
+    most = c->held + c->job_bytes;
+  }
+  return g;
+}
+
+static void shed(sm_server *s, sm_conn *c) {
+  sm_met_add(&sm_met.shed_budget, 1);
+  if (c->state != SM_CONN_OPEN) { /* already closing (its GOAWAY is not read): now */
+    sm_conn_close(s, c);
+    return;
+  }
+  uint32_t kib = (uint32_t)((c->held + c->job_bytes) >> 10);
+  wq_drop_unsent(s, c);
+  rbuf_free(s, c);
+  sm_conn_fatal(s, c, SM_ST_OVERLOADED, 0, SHED_RETRY_MS, kib,
+                "server buffer budget exhausted; this connection held the most");
+}
+
+/* Room for c's read buffer to grow as it wants. */
+static int room_for(const sm_server *s, const sm_conn *c) {
+  size_t want = rbuf_next_cap(c) - c->rcap + MALLOC_OVERHEAD;
+  return s->buf_used + want <= s->cfg.buffer_budget;
+}
+
+void sm_conn_budget(sm_server *s) {
+  for (int guard = 0; guard < 1024; guard++) {
+    int starved = 0;
+    if (s->n_budget_blocked)
+      for (sm_conn *c = s->conns; c && !starved; c = c->next)
+        starved = c->budget_blocked && !room_for(s, c);
+    if (s->buf_used <= s->cfg.buffer_budget && !starved) break;
+    sm_conn *g = greediest(s);
+    if (!g) break; /* what is left is held by cancelled jobs: they free it soon */
+    shed(s, g);
+  }
+  if (!s->n_budget_blocked) return;
+  for (sm_conn *c = s->conns; c; c = c->next)
+    if (c->budget_blocked && room_for(s, c)) {
+      c->budget_blocked = 0;
+      s->n_budget_blocked--;
+      sm_conn_update_events(s, c); /* level-triggered: its pending bytes wake it */
+    }
+}
+
+int sm_conn_evict_idle(sm_server *s, uint64_t now) {
+  /* First a connection that never said HELLO (a good client says it at once), then one
+   * idle after HELLO; the oldest of its kind. */
+  sm_conn *best = NULL;
+  int best_rank = 0;
+  uint64_t best_t = 0;
+  for (sm_conn *c = s->conns; c; c = c->next) {
+    if (c->kind != SM_H_CONN || c->state != SM_CONN_OPEN) continue;
+    int rank = 0;
+    uint64_t t = 0;
+    if (!c->hello_done && now >= c->born_ns + SM_CONN_HELLO_GRACE_MS * 1000000ull) {
+      rank = 2;
+      t = c->born_ns;
+    } else if (c->hello_done && !c->n_inflight && !c->wq_head && !c->rlen &&
+               now >= c->last_active_ns + SM_CONN_IDLE_EVICT_MS * 1000000ull) {
+      rank = 1;
+      t = c->last_active_ns;
+    }
+    if (rank > best_rank || (rank && rank == best_rank && t < best_t)) {
+      best = c;
+      best_rank = rank;
+      best_t = t;
+    }
+  }
+  if (!best) return 0;
+  sm_met_add(&sm_met.shed_idle, 1);
+  sm_conn_fatal(s, best, SM_ST_TOO_MANY_CONNECTIONS, 0, SHED_RETRY_MS,
+                (uint32_t)s->cfg.max_conns,
+                best_rank == 2 ? "connection limit reached: closed for a newer one (no HELLO)"
+                               : "connection limit reached: closed for a newer one (idle)");
+  return 1;
 }

@@ -11,8 +11,27 @@
  *     frame costs nothing. A connection-fatal condition queues one GOAWAY frame carrying
  *     the status, stops reading, cancels the connection's jobs, and closes after the
  *     frame is flushed (half-close, then a short lingering read so the peer sees it).
- *   - Write side: a FIFO of encoded frames (sm_wbuf), flushed when the socket is writable.
- *     Reading pauses while more than SM_CONN_WQ_HIGH bytes wait (backpressure).
+ *   - Write side: a FIFO of encoded frames (sm_wbuf), flushed when the socket is writable;
+ *     small frames are packed into shared chunks (a PING answer costs 32 bytes, not a malloc).
+ *   - Memory (the buffer budget, cfg.buffer_budget, default 1 GiB on top of the cache).
+ *     Every byte buffered for a peer is charged to its connection and to s->buf_used: read
+ *     buffer capacity, queued answer chunks, and request bodies held by jobs until the job
+ *     ends. Three rules keep the total bounded:
+ *       1. back-pressure: no frame is read or handled while the connection's unsent answers
+ *          exceed SM_CONN_WQ_HIGH (SM_CONN_WQ_TIGHT once half the budget is used); the
+ *          buffered frames resume when the peer reads. A peer that pipelines without
+ *          reading stops being read: its requests wait in the kernel, not here;
+ *       2. a read buffer grows with the bytes that arrive (never to a frame's declared size
+ *          at once), and only within the budget; a connection whose buffer cannot grow
+ *          stops being read until sm_conn_budget finds room;
+ *       3. sm_conn_budget (loop, after each event batch): while the budget is exceeded or
+ *          reading is blocked on it, the connection holding the most bytes is closed with
+ *          GOAWAY OVERLOADED (detail: the KiB it held), its unsent answers dropped.
+ *     Buffers are freed as soon as they drain; the loop calls malloc_trim after a burst.
+ *   - Connection limit: at max_conns a new connection evicts the oldest idle one
+ *     (sm_conn_evict_idle: no HELLO after SM_CONN_HELLO_GRACE_MS, or nothing pending for
+ *     SM_CONN_IDLE_EVICT_MS) before it is refused; a HELLO not completed within
+ *     SM_CONN_HELLO_TIMEOUT_MS closes the connection (TIMEOUT).
  *   - In-flight table: request ids of jobs not finished (PROTOCOL.md: a reused id is a
  *     PROTOCOL_ERROR; CANCEL looks targets up here). A closed connection is freed only
  *     when its table is empty.
@@ -28,11 +47,16 @@
 #include "sm_srv.h"
 #include "sm_srv_pool.h"
 
-#define SM_CONN_WQ_HIGH (64u << 20)
+#define SM_CONN_WQ_HIGH (256u << 10)  /* unsent answers that pause reading */
+#define SM_CONN_WQ_TIGHT (16u << 10)  /* the same once half the budget is used */
+#define SM_CONN_HELLO_GRACE_MS 1000u
+#define SM_CONN_IDLE_EVICT_MS 10000u
+#define SM_CONN_HELLO_TIMEOUT_MS 10000u
 
 typedef struct sm_wbuf {
   struct sm_wbuf *next;
   size_t len, off;
+  size_t cap; /* bytes allocated for data (>= len) */
   uint8_t data[];
 } sm_wbuf;
 
@@ -52,14 +76,19 @@ typedef struct sm_conn {
   uint32_t ev_mask; /* registered epoll events */
   uint8_t *rbuf;
   size_t rlen, rcap;
+  size_t rneed;          /* size of the frame being received, once its header is valid */
   sm_wbuf *wq_head, *wq_tail;
-  size_t wq_bytes;
+  size_t wq_bytes;       /* unsent bytes */
+  size_t held;           /* charged to the budget: rcap + the queue's allocations */
+  size_t job_bytes;      /* charged to the budget: bodies held by this connection's jobs */
+  int read_paused;       /* rule 1: answers unread */
+  int budget_blocked;    /* rule 2: the read buffer could not grow */
   int hello_done;
   uint8_t version;       /* of every frame: SM_PROTO_VERSION_HELLO, then the negotiated one */
   uint32_t limit;        /* current max payload */
   uint32_t max_response; /* client's limit, 0 = none */
   int goaway_sent;
-  uint64_t last_active_ns, frame_start_ns, linger_deadline_ns;
+  uint64_t born_ns, last_active_ns, frame_start_ns, linger_deadline_ns;
   sm_job **inflight; /* max_inflight slots */
   uint32_t n_inflight;
   struct sm_conn *prev, *next;
@@ -81,6 +110,7 @@ struct sm_job {
   struct sm_job *parent; /* a unit of a fanned-out request (sm_srv_exec): the request whose
                             cancel flag also applies; NULL for a request */
   uint64_t recv_ns, deadline_ns;
+  size_t charged;     /* loop thread: bytes of buf charged to the budget */
 };
 
 /* A worker's result frames for one job; final = the job is done. */
@@ -96,6 +126,15 @@ sm_conn *sm_conn_new(sm_server *s, int fd, int kind, const char *peer);
 void sm_conn_on_readable(sm_server *s, sm_conn *c);
 /* Flushes the write queue; advances the closing states. */
 void sm_conn_on_writable(sm_server *s, sm_conn *c);
+/* Queues one frame (or a chain from a worker) for sending; charged to the budget; frees
+ * it if the connection is closed. */
+void sm_conn_queue(sm_server *s, sm_conn *c, sm_wbuf *w);
+/* Rule 3 of "Memory": sheds the greediest connections while over the budget, and resumes
+ * reading on connections blocked by it once there is room. Loop thread, between batches. */
+void sm_conn_budget(sm_server *s);
+/* At max_conns: closes the oldest idle connection (GOAWAY TOO_MANY_CONNECTIONS) so that a
+ * new one fits. Returns 1 if one was closed, 0 if none qualifies. */
+int sm_conn_evict_idle(sm_server *s, uint64_t now);
 /* Hands a worker's frames to their connection (or drops them if it is closed). */
 void sm_conn_on_done(sm_server *s, sm_srv_out *o);
 /* Periodic: timeouts, lingering closes, drain. */

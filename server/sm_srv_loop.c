@@ -7,6 +7,7 @@
 #include <fcntl.h>
 #include <netinet/in.h>
 #include <netinet/tcp.h>
+#include <malloc.h> /* malloc_trim (glibc) */
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -21,6 +22,11 @@
 
 #define TICK_MS 100
 #define CANCEL_GRACE_NS 10000000000ull /* after cancelling everything, wait this long */
+#define TRIM_MIN_BYTES (32ull << 20) /* buffered bytes freed since the peak that call for a trim */
+#define TRIM_EVERY_NS 1000000000ull
+
+static int spare_fd = -1; /* given up on EMFILE: see on_emfile */
+static uint64_t emfile_logged_ns;
 
 static int h_listen = SM_H_LISTEN, h_metrics = SM_H_METRICS_LISTEN, h_event = SM_H_EVENTFD;
 
@@ -51,6 +57,23 @@ int sm_srv_listen(const char *bind_addr, int port, char *err, size_t errlen, int
   return ntohs(a.sin_port);
 }
 
+/* Out of descriptors: accept the newcomer on the spare one and close it at once. */
+static void on_emfile(int lfd) {
+  uint64_t now = sm_srv_now_ns();
+  if (now - emfile_logged_ns > 1000000000ull) {
+    emfile_logged_ns = now;
+    sm_log("warn", "out of file descriptors, refusing connections", NULL);
+  }
+  if (spare_fd < 0) return;
+  close(spare_fd);
+  int fd = accept(lfd, NULL, NULL);
+  if (fd >= 0) {
+    close(fd);
+    sm_met_add(&sm_met.connections_rejected, 1);
+  }
+  spare_fd = open("/dev/null", O_RDONLY | O_CLOEXEC);
+}
+
 static void on_accept(sm_server *s, int lfd, int kind) {
   for (int i = 0; i < 64; i++) {
     struct sockaddr_in a;
@@ -58,7 +81,8 @@ static void on_accept(sm_server *s, int lfd, int kind) {
     int fd = accept4(lfd, (struct sockaddr *)&a, &sl, SOCK_NONBLOCK | SOCK_CLOEXEC);
     if (fd < 0) {
       if (errno == EINTR) continue;
-      if (errno != EAGAIN && errno != EWOULDBLOCK)
+      if (errno == EMFILE || errno == ENFILE) on_emfile(lfd);
+      else if (errno != EAGAIN && errno != EWOULDBLOCK)
         sm_log("warn", "accept failed", " err=\"%s\"", strerror(errno));
       return;
     }
@@ -69,7 +93,8 @@ static void on_accept(sm_server *s, int lfd, int kind) {
       int one = 1;
       setsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
     }
-    int over = kind == SM_H_CONN && s->n_active >= s->cfg.max_conns;
+    int over = kind == SM_H_CONN && s->n_active >= s->cfg.max_conns &&
+               !sm_conn_evict_idle(s, sm_srv_now_ns());
     sm_conn *c = sm_conn_new(s, fd, kind, peer);
     if (!c) {
       close(fd);
@@ -96,12 +121,8 @@ static void on_http(sm_server *s, sm_conn *c) {
   sm_wbuf *w = resp ? sm_wbuf_new(len) : NULL;
   if (w) memcpy(w->data, resp, len);
   free(resp);
-  if (w) {
-    w->next = NULL;
-    c->wq_head = c->wq_tail = w;
-    c->wq_bytes = len;
-  }
   c->rlen = 0;
+  sm_conn_queue(s, c, w);
   c->state = SM_CONN_FLUSH_CLOSE;
   sm_conn_on_writable(s, c);
 }
@@ -139,8 +160,10 @@ int sm_srv_run(sm_server *s, int lfd, int mfd) {
   }
   ev.data.ptr = &h_event;
   epoll_ctl(s->epfd, EPOLL_CTL_ADD, efd, &ev);
-  uint64_t last_tick = 0, cancel_deadline = 0;
+  uint64_t last_tick = 0, cancel_deadline = 0, last_trim = 0;
   int rc = 0;
+  sm_met.buffer_budget = s->cfg.buffer_budget;
+  if (spare_fd < 0) spare_fd = open("/dev/null", O_RDONLY | O_CLOEXEC);
   for (;;) {
     struct epoll_event evs[128];
     int n = epoll_wait(s->epfd, evs, 128, TICK_MS);
@@ -179,6 +202,7 @@ int sm_srv_run(sm_server *s, int lfd, int mfd) {
         else if (e & (EPOLLIN | EPOLLERR | EPOLLHUP)) sm_conn_on_readable(s, c);
       }
     }
+    sm_conn_budget(s);
     sm_conn_sweep(s);
     uint64_t now = sm_srv_now_ns();
     if (sm_srv_signal_flag && !s->draining) {
@@ -188,6 +212,12 @@ int sm_srv_run(sm_server *s, int lfd, int mfd) {
     if (now - last_tick >= (uint64_t)TICK_MS * 1000000ull) {
       last_tick = now;
       sm_conn_tick(s, now);
+      if (s->buf_trim_mark > s->buf_used + TRIM_MIN_BYTES && now - last_trim > TRIM_EVERY_NS) {
+        /* After a burst: free()d chunks inside the heap stay resident until trimmed. */
+        malloc_trim(0);
+        s->buf_trim_mark = s->buf_used;
+        last_trim = now;
+      }
     }
     if (s->draining) {
       int open_conns = 0, jobs = 0;
@@ -217,5 +247,7 @@ int sm_srv_run(sm_server *s, int lfd, int mfd) {
   }
   sm_conn_sweep(s);
   if (mfd >= 0) close(mfd);
+  if (spare_fd >= 0) close(spare_fd);
+  spare_fd = -1;
   return rc;
 }

@@ -1,6 +1,13 @@
 /* sm_srv_loop: the epoll event loop (Redis ae.c style, level-triggered): the listening
  * socket, the metrics HTTP listener, the pool's eventfd and every connection; a periodic
- * tick (100 ms) for timeouts and the shutdown sequence.
+ * tick (100 ms) for timeouts and the shutdown sequence. After every batch of events it
+ * enforces the buffer budget (sm_conn_budget, sm_srv_conn.h "Memory"), and after a burst
+ * of buffered bytes it hands the freed memory back to the kernel (malloc_trim).
+ *
+ * Accepting: at max_conns a new connection first evicts the oldest idle one
+ * (sm_conn_evict_idle), else it is answered GOAWAY TOO_MANY_CONNECTIONS. When the process
+ * runs out of descriptors, a spare one is given up to accept and close the newcomer, so a
+ * pending connection cannot keep the listening socket readable forever (a busy loop).
  *
  * Contract: sm_srv_listen binds and listens (non-blocking, SO_REUSEADDR), returning the
  * bound port (the caller logs it). sm_srv_run runs until a SIGTERM/SIGINT (the handler

@@ -56,6 +56,14 @@ uint32_t sm_met_stats(struct sm_store *st, sm_proto_stat *out, uint32_t cap) {
   put(out, cap, &n, "bases_loaded", ss.bases_loaded);
   put(out, cap, &n, "bases_corrupt", ss.bases_corrupt);
   put(out, cap, &n, "shapes_corrupt", ss.shapes_corrupt);
+  put(out, cap, &n, "connections_rejected", sm_met_get(&sm_met.connections_rejected));
+  put(out, cap, &n, "buffered_bytes", sm_met_get(&sm_met.buffered));
+  put(out, cap, &n, "buffered_peak", sm_met_get(&sm_met.buffered_peak));
+  put(out, cap, &n, "buffer_budget", sm_met_get(&sm_met.buffer_budget));
+  put(out, cap, &n, "read_pauses", sm_met_get(&sm_met.read_pauses));
+  put(out, cap, &n, "budget_blocks", sm_met_get(&sm_met.budget_blocks));
+  put(out, cap, &n, "shed_overloaded", sm_met_get(&sm_met.shed_budget));
+  put(out, cap, &n, "shed_idle", sm_met_get(&sm_met.shed_idle));
   return n;
 }
 

@@ -24,6 +24,12 @@ typedef struct sm_metrics {
   _Atomic uint64_t fanout_units;          /* BATCH items and QUERY candidates run as units */
   _Atomic uint64_t fanout_workers_max;    /* most distinct workers one request's units ran on */
   _Atomic uint64_t lat_bucket[8];         /* <= 1ms,10ms,100ms,1s,10s,100s,+Inf (7 used) */
+  /* The buffer budget (sm_srv_conn.h, "Memory"); written by the loop thread only. */
+  _Atomic uint64_t buffered, buffered_peak, buffer_budget;
+  _Atomic uint64_t read_pauses;           /* a connection's reading paused (answers unread) */
+  _Atomic uint64_t budget_blocks;         /* a read buffer could not grow: budget exhausted */
+  _Atomic uint64_t shed_budget;           /* connections closed with OVERLOADED */
+  _Atomic uint64_t shed_idle;             /* idle connections closed to admit a new one */
   uint64_t start_ns;
 } sm_metrics;
 

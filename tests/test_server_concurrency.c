@@ -11,7 +11,15 @@
  *      TOO_MANY_CONNECTIONS, the others keep working); --token (missing / wrong ->
  *      UNAUTHORIZED, right -> accepted); --cache-mb 1 (cache_evictions > 0, requests still
  *      right, bases reloaded from disk);
- *   4. each daemon still answers afterwards and exits 0 on SIGTERM.
+ *   4. each daemon still answers afterwards and exits 0 on SIGTERM;
+ *   5. the buffer budget and hostile peers (daemon I, --buffer-budget-mb 16 --max-conns 40):
+ *      non-reading PING pipeliners stop being read (STATS read_pauses) while the daemon's
+ *      buffered bytes stay under the budget and a good client's PING is answered, then
+ *      every pipelined PING is answered exactly once, in order, when they read; partial
+ *      uploads are charged as their bytes arrive and freed when they go, and past the
+ *      budget the greediest is closed with GOAWAY OVERLOADED; a flood of connections
+ *      that never say HELLO fills --max-conns, and a good client still gets in (the
+ *      oldest of the flood is evicted with TOO_MANY_CONNECTIONS).
  * Worker threads never use CHECK/REQUIRE (not thread-safe): they count failures in their
  * own context; the main thread checks them. Every socket read has a timeout; alarm()
  * bounds the whole program. */
@@ -21,6 +29,7 @@
 #include <errno.h>
 #include <fcntl.h>
 #include <netinet/in.h>
+#include <poll.h>
 #include <pthread.h>
 #include <signal.h>
 #include <stdint.h>
@@ -690,6 +699,219 @@ static int log_has(const char *s) {
 
 /* ------------------------------------------------------------------ main */
 
+/* ------------------------------------------------------------------ 5. budget */
+
+#define BUDGET_MB 16
+
+/* Sends buf[*off..len) without blocking until the daemon stops taking bytes: no progress
+ * for stall_ms (its socket buffers are full because it stopped reading). Returns 0 when
+ * it stalled, 1 when everything was sent, -1 on error (e.g. closed by the daemon). */
+static int send_until_stall(int fd, const uint8_t *buf, size_t len, size_t *off, int stall_ms) {
+  while (*off < len) {
+    ssize_t w = send(fd, buf + *off, len - *off, MSG_NOSIGNAL | MSG_DONTWAIT);
+    if (w > 0) {
+      *off += (size_t)w;
+      continue;
+    }
+    if (w < 0 && errno == EINTR) continue;
+    if (w < 0 && errno != EAGAIN && errno != EWOULDBLOCK) return -1;
+    struct pollfd p = {fd, POLLOUT, 0};
+    int r = poll(&p, 1, stall_ms);
+    if (r == 0) return 0;
+    if (r < 0 && errno != EINTR) return -1;
+  }
+  return 1;
+}
+
+/* Polls STATS until name <= (below=1) or >= (below=0) v; returns the last value. The
+ * daemon sees closes and bytes asynchronously: this waits for a state, bounded. */
+static uint64_t wait_stat(int fd, const char *name, uint64_t v, int below) {
+  uint64_t x = UINT64_MAX;
+  for (int i = 0; i < 600; i++) {
+    x = stat_of(fd, name);
+    if (x != UINT64_MAX && (below ? x <= v : x >= v)) break;
+    sleep_us(20000);
+  }
+  return x;
+}
+
+/* A GOAWAY with the given status arrives (after any other frames). */
+static int got_goaway(int fd, uint16_t status, uint32_t *detail) {
+  frame f;
+  while (recv_frame(fd, &f) == 0) {
+    int hit = f.h.opcode == SM_OP_GOAWAY;
+    int ok = hit && f.h.status == status;
+    sm_proto_error e;
+    if (ok && detail && !sm_proto_dec_error(f.body, f.body_len, &e)) *detail = e.detail;
+    frame_free(&f);
+    if (hit) return ok;
+  }
+  return 0;
+}
+
+static void test_pipeliners(int good) {
+  enum { NPIPE = 8, NPING = 1 << 18 }; /* 8 MiB of PINGs each: more than any buffer */
+  size_t flen = SM_PROTO_HEADER_LEN + 8;
+  uint8_t *buf = malloc(NPING * flen);
+  REQUIRE(buf);
+  for (uint32_t i = 0; i < NPING; i++) {
+    req r = {R_PING, NULL, NULL, 0xabc00000000ull + i, 0};
+    REQUIRE(enc_req(buf + i * flen, flen, i + 1, &r) == (ptrdiff_t)flen);
+  }
+  int fds[NPIPE];
+  size_t sent[NPIPE];
+  uint64_t pauses0 = stat_of(good, "read_pauses");
+  for (int i = 0; i < NPIPE; i++) {
+    int small = 16384; /* the client's receive buffer: the daemon's answers pile up fast */
+    fds[i] = socket(AF_INET, SOCK_STREAM, 0);
+    REQUIRE(fds[i] >= 0);
+    setsockopt(fds[i], SOL_SOCKET, SO_RCVBUF, &small, sizeof small);
+    struct sockaddr_in a = {.sin_family = AF_INET, .sin_port = htons((uint16_t)g_port)};
+    a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+    REQUIRE(connect(fds[i], (struct sockaddr *)&a, sizeof a) == 0);
+    struct timeval tv = {IO_TIMEOUT_S, 0};
+    setsockopt(fds[i], SOL_SOCKET, SO_RCVTIMEO, &tv, sizeof tv);
+    REQUIRE(hello_tok(fds[i], NULL, NULL) == 0);
+    sent[i] = 0;
+  }
+  for (int i = 0; i < NPIPE; i++) /* stalls: the daemon stopped reading them */
+    CHECK_MSG(send_until_stall(fds[i], buf, NPING * flen, &sent[i], 1000) == 0,
+              "pipeliner %d: the daemon took all %zu bytes", i, sent[i]);
+  uint64_t used = stat_of(good, "buffered_bytes"), peak = stat_of(good, "buffered_peak");
+  uint64_t pauses = stat_of(good, "read_pauses");
+  fprintf(stderr, "pipeliners: sent %zu..%zu bytes each; buffered %llu, peak %llu, pauses +%llu\n",
+          sent[0], sent[NPIPE - 1], (unsigned long long)used, (unsigned long long)peak,
+          (unsigned long long)(pauses - pauses0));
+  CHECK(used <= (uint64_t)BUDGET_MB << 20 && peak <= (uint64_t)BUDGET_MB << 20);
+  CHECK(pauses != UINT64_MAX && pauses >= pauses0 + NPIPE);
+  req p = {R_PING, NULL, NULL, 77, 0};
+  CHECK(call(good, 1, &p, 1) == 0); /* answered meanwhile */
+  /* Now they read: every complete PING answered exactly once, in order (the rest of the
+   * buffer is sent as answers are read, so the daemon resumes and finishes them all). */
+  for (int i = 0; i < NPIPE; i++) {
+    uint32_t want = 1, nping = (uint32_t)NPING;
+    int bad = 0;
+    while (want <= nping && !bad) {
+      if (sent[i] < NPING * flen) (void)send_until_stall(fds[i], buf, NPING * flen, &sent[i], 0);
+      frame f;
+      if (recv_frame(fds[i], &f)) {
+        bad = 1;
+        break;
+      }
+      sm_proto_ping q;
+      bad = f.h.status || f.h.request_id != want || sm_proto_dec_ping(f.body, f.body_len, &q) ||
+            q.opaque != 0xabc00000000ull + want - 1;
+      frame_free(&f);
+      want++;
+    }
+    CHECK_MSG(!bad && want == nping + 1, "pipeliner %d: answer %u wrong or missing", i, want);
+    close(fds[i]);
+  }
+  free(buf);
+  used = wait_stat(good, "buffered_bytes", 256u << 10, 1);
+  CHECK_MSG(used <= 256u << 10, "buffered_bytes %llu after the pipeliners left",
+            (unsigned long long)used);
+}
+
+/* One connection that declares a PUT_SHAPE of `declared` payload bytes and sends `part`. */
+static int partial_upload(size_t declared, size_t part, size_t *sent) {
+  int fd = connect_to(g_port);
+  if (fd < 0 || hello_tok(fd, NULL, NULL) != 0) return -1;
+  uint8_t *b = calloc(1, SM_PROTO_HEADER_LEN + part);
+  if (!b) return -1;
+  sm_proto_header h = req_hdr(5);
+  h.version = 1; /* hello_tok offers version 1 only */
+  h.opcode = SM_OP_PUT_SHAPE;
+  h.payload_len = (uint32_t)declared;
+  sm_proto_write_header(b, &h);
+  *sent = 0;
+  (void)send_until_stall(fd, b, SM_PROTO_HEADER_LEN + part, sent, 1000);
+  free(b);
+  return fd;
+}
+
+static void test_partial_uploads(int good) {
+  size_t sent = 0, declared = 15u << 20;
+  uint64_t base = stat_of(good, "buffered_bytes");
+  /* 1. charged as the bytes arrive, not when declared; freed when the peer goes */
+  int fd = partial_upload(declared, 3u << 20, &sent);
+  REQUIRE(fd >= 0);
+  CHECK(sent == SM_PROTO_HEADER_LEN + (3u << 20));
+  uint64_t used = wait_stat(good, "buffered_bytes", base + (3u << 20), 0);
+  fprintf(stderr, "partial upload of 3 of 15 MiB: buffered %llu (base %llu)\n",
+          (unsigned long long)used, (unsigned long long)base);
+  CHECK(used >= base + (3u << 20) && used < base + (8u << 20));
+  close(fd);
+  used = wait_stat(good, "buffered_bytes", base + (64u << 10), 1);
+  CHECK_MSG(used <= base + (64u << 10), "buffered %llu after the upload went", (unsigned long long)used);
+  /* 2. four of 6 MiB each do not fit in 16 MiB: the greediest go with OVERLOADED */
+  enum { NUP = 4 };
+  int fds[NUP];
+  uint64_t shed0 = stat_of(good, "shed_overloaded");
+  for (int i = 0; i < NUP; i++) {
+    fds[i] = partial_upload(declared, 6u << 20, &sent);
+    REQUIRE(fds[i] >= 0);
+  }
+  uint64_t shed = wait_stat(good, "shed_overloaded", shed0 + 1, 0);
+  uint64_t peak = stat_of(good, "buffered_peak");
+  fprintf(stderr, "4 partial uploads of 6 MiB: shed %llu, peak %llu\n",
+          (unsigned long long)(shed - shed0), (unsigned long long)peak);
+  CHECK(shed != UINT64_MAX && shed >= shed0 + 1);
+  CHECK(peak <= (uint64_t)BUDGET_MB << 20);
+  req p = {R_PING, NULL, NULL, 78, 0};
+  CHECK(call(good, 2, &p, 1) == 0);
+  int n_goaway = 0;
+  for (int i = 0; i < NUP; i++) {
+    if ((int)(shed - shed0) > n_goaway) {
+      struct timeval tv = {1, 0}; /* the survivors get nothing: do not wait long on them */
+      setsockopt(fds[i], SOL_SOCKET, SO_RCVTIMEO, &tv, sizeof tv);
+      uint32_t detail = 0;
+      if (got_goaway(fds[i], SM_ST_OVERLOADED, &detail)) {
+        n_goaway++;
+        CHECK(detail > 0); /* the KiB it held */
+      }
+    }
+    close(fds[i]);
+  }
+  CHECK(n_goaway == (int)(shed - shed0));
+  used = wait_stat(good, "buffered_bytes", base + (64u << 10), 1);
+  CHECK_MSG(used <= base + (64u << 10), "buffered %llu after the uploads went", (unsigned long long)used);
+}
+
+static void test_flood(int good, int max_conns) {
+  enum { EXTRA = 16 };
+  int fds[64 + EXTRA], n = 0, rejected = 0;
+  REQUIRE(max_conns + EXTRA <= 64 + EXTRA);
+  uint64_t idle0 = stat_of(good, "shed_idle");
+  CHECK(wait_stat(good, "connections", 1, 1) == 1); /* earlier tests' peers are gone */
+  /* max_conns - 1 connections that never say HELLO (the good one holds a slot), then more:
+   * those are refused, since no flood connection is old enough to be evicted yet. */
+  for (int i = 0; i < max_conns - 1; i++) {
+    fds[n] = connect_to(g_port);
+    REQUIRE(fds[n] >= 0);
+    n++;
+  }
+  (void)wait_stat(good, "connections", (uint64_t)max_conns, 0);
+  for (int i = 0; i < EXTRA; i++) {
+    int c = connect_to(g_port);
+    REQUIRE(c >= 0);
+    rejected += got_goaway(c, SM_ST_TOO_MANY_CONNECTIONS, NULL);
+    close(c);
+  }
+  CHECK(rejected == EXTRA);
+  /* Once the flood is older than the HELLO grace, a good client gets in. */
+  sleep_us(1200000);
+  int c = open_client();
+  CHECK(c >= 0);
+  req p = {R_PING, NULL, NULL, 79, 0};
+  if (c >= 0) CHECK(call(c, 1, &p, 1) == 0);
+  CHECK(call(good, 3, &p, 1) == 0); /* the busy good client was not evicted */
+  CHECK(stat_of(good, "shed_idle") == idle0 + 1);
+  CHECK(got_goaway(fds[0], SM_ST_TOO_MANY_CONNECTIONS, NULL)); /* the oldest went */
+  for (int i = 0; i < n; i++) close(fds[i]);
+  if (c >= 0) close(c);
+}
+
 int main(void) {
   signal(SIGPIPE, SIG_IGN);
   signal(SIGALRM, on_alarm);
@@ -1098,6 +1320,20 @@ int main(void) {
     snprintf(want, sizeof want, "%s:1: expected 'key = value'", conf);
     CHECK_MSG(log_has(want), "log lacks: %s", want);
   }
+
+  /* ---------------- daemon I: the buffer budget, hostile peers, a flood */
+  g_port = start_daemon("--buffer-budget-mb 16 --max-conns 40 --threads 1");
+  REQUIRE(g_port > 0);
+  {
+    int good = open_client();
+    REQUIRE(good >= 0);
+    CHECK(stat_of(good, "buffer_budget") == (uint64_t)BUDGET_MB << 20);
+    test_pipeliners(good);
+    test_partial_uploads(good);
+    test_flood(good, 40);
+    close(good);
+  }
+  CHECK(stop_daemon() == 0);
 
   kill_daemon();
   if (!sm_test_failures) rm_rf(g_dir);
