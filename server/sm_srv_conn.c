@@ -22,6 +22,7 @@
 #define SMALL_FRAME 512u
 #define MALLOC_OVERHEAD 16u    /* charged per allocation: what malloc keeps beside it */
 #define SHED_RETRY_MS 1000u
+#define READ_SLICE (64u << 10) /* bytes read from one connection per event: fairness */
 
 sm_wbuf *sm_wbuf_new(size_t len) {
   sm_wbuf *w = malloc(sizeof *w + len);
@@ -699,7 +700,10 @@ void sm_conn_on_readable(sm_server *s, sm_conn *c) {
     }
   }
   if (c->state != SM_CONN_OPEN) return;
-  for (int rounds = 0; rounds < 16 && c->state == SM_CONN_OPEN; rounds++) {
+  /* At most READ_SLICE bytes per event (level-triggered: the rest wakes us again), so a
+   * peer that uploads at loopback speed cannot hold the loop while others wait. */
+  size_t got = 0;
+  for (int rounds = 0; rounds < 16 && got < READ_SLICE && c->state == SM_CONN_OPEN; rounds++) {
     if (c->budget_blocked || (c->kind == SM_H_CONN && c->wq_bytes >= wq_cap(s))) break;
     if (!c->rbuf || c->rlen == c->rcap) {
       if (rbuf_resize(s, c, rbuf_next_cap(c))) {
@@ -712,7 +716,8 @@ void sm_conn_on_readable(sm_server *s, sm_conn *c) {
         break;
       }
     }
-    ssize_t n = recv(c->fd, c->rbuf + c->rlen, c->rcap - c->rlen, 0);
+    size_t room = c->rcap - c->rlen;
+    ssize_t n = recv(c->fd, c->rbuf + c->rlen, room < READ_SLICE ? room : READ_SLICE, 0);
     if (n < 0 && errno == EINTR) continue;
     if (n < 0 && (errno == EAGAIN || errno == EWOULDBLOCK)) break;
     if (n <= 0) {
@@ -720,6 +725,7 @@ void sm_conn_on_readable(sm_server *s, sm_conn *c) {
       return;
     }
     sm_met_add(&sm_met.bytes_in, (uint64_t)n);
+    got += (size_t)n;
     uint64_t now = sm_srv_now_ns();
     if (c->rlen == 0) c->frame_start_ns = now;
     c->last_active_ns = now;
