@@ -20,6 +20,17 @@ cmake --build build-asan -j"$jobs"
 (cd build-asan && SM_TEST_SYNTHETIC_ONLY=1 ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 \
    UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 ctest --output-on-failure -j"$jobs")
 
+# ThreadSanitizer on what runs threads: the daemon (its loop, pool and store), the client
+# library and the CLI, through the tests that drive them (the daemon these tests start is
+# the TSan build too). tests/tsan.supp only hides libgomp's uninstrumented barriers.
+tsan_tests='test_server|test_server_concurrency|test_client|test_crash'
+cmake -S . -B build-tsan -DCMAKE_BUILD_TYPE=Debug -DSM_TSAN=ON >/dev/null
+cmake --build build-tsan -j"$jobs" --target shapematchd shapematch test_server \
+  test_server_concurrency test_client test_crash
+(cd build-tsan && SM_TEST_SYNTHETIC_ONLY=1 \
+   TSAN_OPTIONS="halt_on_error=1 suppressions=$PWD/../tests/tsan.supp" \
+   ctest --output-on-failure -j"$jobs" --timeout 1500 -R "^($tsan_tests)\$")
+
 # Fuzzing: each harness of tests/fuzz for a few seconds (libFuzzer, clang, ASan + UBSan,
 # in build-fuzz), on top of the replay ctests both passes above ran; the long runs are in
 # docs/RELIABILITY.md section 2. install-deps.sh installs clang and libFuzzer, so a machine

@@ -23,13 +23,13 @@
 static char g_dir[512], g_log[600]; /* test's temp dir; the daemon's log inside it */
 static pid_t g_pid = -1;
 
-static void sleep_us(long us) {
+static inline void sleep_us(long us) {
   struct timespec ts = {us / 1000000, (us % 1000000) * 1000};
   while (nanosleep(&ts, &ts) && errno == EINTR) {
   }
 }
 
-static void kill_daemon(void) {
+static inline void kill_daemon(void) {
   if (g_pid > 0) {
     kill(g_pid, SIGKILL);
     waitpid(g_pid, NULL, 0);
@@ -39,7 +39,7 @@ static void kill_daemon(void) {
 
 /* Child side: stderr to the log, argv = daemon --port 0 --data-dir DIR/data + the
  * space-separated words of `common` and `extra`. */
-static void exec_daemon(const char *datadir, const char *common, const char *extra) {
+static inline void exec_daemon(const char *datadir, const char *common, const char *extra) {
   int fd = open(g_log, O_WRONLY | O_CREAT | O_TRUNC, 0600);
   if (fd < 0) _exit(127);
   dup2(fd, 2);
@@ -66,7 +66,7 @@ static void exec_daemon(const char *datadir, const char *common, const char *ext
 
 /* Starts the daemon on g_dir/data; returns its port, or -1 (it exited or never listened
  * within 60 s). */
-static int start_daemon_with(const char *common, const char *extra) {
+static inline int start_daemon_with(const char *common, const char *extra) {
   snprintf(g_log, sizeof g_log, "%s/daemon.log", g_dir);
   char datadir[600];
   snprintf(datadir, sizeof datadir, "%s/data", g_dir);
@@ -98,7 +98,7 @@ static int start_daemon_with(const char *common, const char *extra) {
 
 /* SIGTERM; returns the exit status (128 + signal if killed), or -1 after 60 s (then
  * SIGKILL). */
-static int stop_daemon(void) {
+static inline int stop_daemon(void) {
   kill(g_pid, SIGTERM);
   int st = 0;
   for (int i = 0; i < 1200; i++) {

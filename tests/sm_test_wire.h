@@ -20,7 +20,7 @@
 
 /* A blocking connection to 127.0.0.1:port whose reads and writes time out after
  * timeout_s seconds; -1 on failure. */
-static int wire_connect(int port, int timeout_s) {
+static inline int wire_connect(int port, int timeout_s) {
   int fd = socket(AF_INET, SOCK_STREAM, 0);
   if (fd < 0) return -1;
   struct sockaddr_in a;
@@ -38,7 +38,7 @@ static int wire_connect(int port, int timeout_s) {
   return fd;
 }
 
-static int send_all(int fd, const void *b, size_t n) {
+static inline int send_all(int fd, const void *b, size_t n) {
   const uint8_t *p = b;
   while (n) {
     ssize_t w = send(fd, p, n, MSG_NOSIGNAL);
@@ -50,7 +50,7 @@ static int send_all(int fd, const void *b, size_t n) {
   return 0;
 }
 
-static int recv_all(int fd, void *b, size_t n) {
+static inline int recv_all(int fd, void *b, size_t n) {
   uint8_t *p = b;
   while (n) {
     ssize_t r = recv(fd, p, n, 0);
@@ -70,7 +70,7 @@ typedef struct frame {
 } frame;
 
 /* 0, or -1 on EOF / timeout / parse error (nothing left allocated then). */
-static int recv_frame(int fd, frame *f) {
+static inline int recv_frame(int fd, frame *f) {
   memset(f, 0, sizeof *f);
   uint8_t hdr[SM_PROTO_HEADER_LEN];
   if (recv_all(fd, hdr, sizeof hdr)) return -1;
@@ -90,19 +90,19 @@ static int recv_frame(int fd, frame *f) {
   return 0;
 }
 
-static void frame_free(frame *f) {
+static inline void frame_free(frame *f) {
   free(f->buf);
   f->buf = NULL;
 }
 
-static sm_proto_header req_hdr(uint32_t rid) {
+static inline sm_proto_header req_hdr(uint32_t rid) {
   sm_proto_header h;
   memset(&h, 0, sizeof h);
   h.request_id = rid;
   return h;
 }
 
-static void rm_rf(const char *dir) {
+static inline void rm_rf(const char *dir) {
   DIR *d = opendir(dir);
   if (!d) return;
   struct dirent *de;

@@ -487,9 +487,26 @@ static void test_bad_shapes(const shape *x, const shape *y) {
   sm_proto_put_resp pr;
   char msg[400];
 
-  /* run 4: an older daemon with k = 20 stores the 42-vertex sphere (>= 2k + 1). */
+  /* run 4: an older daemon with k = 20 stores the 42-vertex sphere (>= 2k + 1). A stray
+   * file in shapes/ is reported, not silently ignored (and not deleted: not ours). */
+  char stray[1200];
+  snprintf(stray, sizeof stray, "%s/data/shapes/notanid.drc", g_dir);
+  FILE *sf = fopen(stray, "w");
+  REQUIRE(sf);
+  fputs("not a shape\n", sf);
+  fclose(sf);
   int port = start_daemon("--default-k 20 --max-components 2");
   REQUIRE(port > 0);
+  {
+    FILE *lf = fopen(g_log, "r");
+    char line[1024];
+    int reported = 0;
+    while (lf && fgets(line, sizeof line, lf)) reported |= strstr(line, "stray file") && strstr(line, "notanid.drc");
+    if (lf) fclose(lf);
+    CHECK(reported);
+    struct stat sb;
+    CHECK(stat(stray, &sb) == 0);
+  }
   int fd = connect_to(port);
   hello(fd, NULL);
   CHECK(put(fd, small.id, small.drc, small.len, &pr) == SM_ST_OK);
