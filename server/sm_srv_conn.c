@@ -593,8 +593,8 @@ static int on_frame(sm_server *s, sm_conn *c, const sm_proto_frame *f, size_t fr
     submit_job(s, c, f, frame_len, steal);
     return steal && c->rbuf == NULL;
   }
-  case SM_OP_GOAWAY:
-    sm_conn_send_error(s, c, op, rid, SM_ST_BAD_REQUEST, 0, 0, "GOAWAY is server to client only");
+  case SM_OP_GOAWAY: /* a GOAWAY answer would read as "closing" while the connection lived on */
+    sm_conn_fatal(s, c, SM_ST_PROTOCOL_ERROR, rid, 0, 0, "GOAWAY is server to client only");
     return 0;
   default:
     sm_conn_send_error(s, c, op, rid, SM_ST_UNKNOWN_OPCODE, 0, 0, "unknown opcode");

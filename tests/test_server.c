@@ -909,6 +909,17 @@ int main(void) {
     CHECK(f.h.opcode == SM_OP_GOAWAY && f.h.status == SM_ST_BAD_MAGIC);
     frame_free(&f);
     close(fd2);
+    /* A client-sent GOAWAY is a protocol error: GOAWAY PROTOCOL_ERROR, then EOF. */
+    fd2 = connect_to(port);
+    hello(fd2, NULL);
+    sm_proto_header gh = {1, SM_OP_GOAWAY, 0, g_rid++, 0, 0};
+    sm_proto_write_header(raw, &gh);
+    REQUIRE(send_all(fd2, raw, sizeof raw) == 0);
+    REQUIRE(recv_frame(fd2, &f) == 0);
+    CHECK(f.h.opcode == SM_OP_GOAWAY && f.h.status == SM_ST_PROTOCOL_ERROR);
+    frame_free(&f);
+    CHECK(recv(fd2, &b, 1, 0) == 0); /* closed */
+    close(fd2);
     /* A request before HELLO. */
     fd2 = connect_to(port);
     CHECK(ping(fd2, 1) != 0); /* answered with GOAWAY PROTOCOL_ERROR */
