@@ -17,6 +17,7 @@ PKGS=(
   python3-matplotlib       # the evaluation suite's plots (bench/eval)
   clang libclang-rt-dev    # fuzz harnesses: libFuzzer + ASan/UBSan (tests/fuzz/run.sh)
   afl++                    # the same harnesses under AFL++ (tests/fuzz/README.md)
+  haproxy stunnel4 openssl # the TLS front of deploy/tls, checked by deploy/tls/check.sh
 )
 
 missing=()

@@ -20,6 +20,12 @@ cmake --build build-asan -j"$jobs"
 (cd build-asan && SM_TEST_SYNTHETIC_ONLY=1 ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 \
    UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 ctest --output-on-failure -j"$jobs")
 
+# TLS termination in front of the daemon (deploy/tls/haproxy.cfg) with the real haproxy,
+# stunnel4 and CLI. Exit 77 = a tool is missing (install-deps.sh installs them).
+rc=0
+./deploy/tls/check.sh build || rc=$?
+if [ "$rc" -ne 0 ] && [ "$rc" -ne 77 ]; then exit "$rc"; fi
+
 # ThreadSanitizer on what runs threads: the daemon (its loop, pool and store), the client
 # library and the CLI, through the tests that drive them (the daemon these tests start is
 # the TSan build too). tests/tsan.supp only hides libgomp's uninstrumented barriers.
