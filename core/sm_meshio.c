@@ -487,6 +487,9 @@ static int ply_property(tcur *c, ply_header *h, sm_error *err) {
   }
   if ((p->type = ply_type(w, n)) == PT_NONE) return syntax_error(c, err, "unknown property type");
   n = header_word(c, &w);
+  /* A nameless property would be harmless to us, but OpenMesh's reader, which sees binary
+   * files first, loops forever on one (found by tests/fuzz/fuzz_meshio). */
+  if (n == 0) return syntax_error(c, err, "property without a name");
   p->role = ROLE_SKIP;
   if (e->is_vertex && p->list_type == PT_NONE) {
     if (wordeq(w, n, "x")) p->role = ROLE_X;

@@ -112,6 +112,11 @@ int decode_impl(const uint8_t *buf, size_t len, const sm_limits *lim, sm_mesh **
   if (pos->num_components() < 2 || pos->num_components() > 4)
     return sm_error_set(err, SM_EUNSUPPORTED, "draco: POSITION has %d components",
                         (int)pos->num_components());
+  /* Draco converts a DT_BOOL (or unknown) position by loading raw bytes as bool, which is
+   * undefined behaviour (found by tests/fuzz/fuzz_draco_mesh): positions must be numbers. */
+  if (pos->data_type() < draco::DT_INT8 || pos->data_type() > draco::DT_FLOAT64)
+    return sm_error_set(err, SM_EUNSUPPORTED, "draco: POSITION has non-numeric type %d",
+                        (int)pos->data_type());
 
   int64_t nv = dm->num_points(), nf = dm->num_faces();
   int rc = sm_limits_check(lim, nv, nf, err);

@@ -15,6 +15,7 @@
 #include <stdlib.h>
 #include <string.h>
 #include <sys/stat.h>
+#include <unistd.h> /* read(): AFL++'s test case macros use it */
 
 #include "sm_fuzz.h"
 
