@@ -30,7 +30,8 @@ static int write_seed(const char *harness, const char *name, const uint8_t *pre,
   snprintf(path, sizeof path, "%s/%s/%s", g_out, harness, name);
   FILE *f = fopen(path, "wb");
   if (!f) return -1;
-  int ok = fwrite(pre, 1, npre, f) == npre && fwrite(p, 1, n, f) == n;
+  /* fwrite's buffer must not be NULL even for 0 bytes (UBSan): empty parts are skipped. */
+  int ok = (!npre || fwrite(pre, 1, npre, f) == npre) && (!n || fwrite(p, 1, n, f) == n);
   return fclose(f) == 0 && ok ? 0 : -1;
 }
 
