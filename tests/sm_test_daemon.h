@@ -64,6 +64,20 @@ static inline void exec_daemon(const char *datadir, const char *common, const ch
   _exit(127);
 }
 
+/* Flips one byte in the middle of a file, as a disk or a stray writer would: the store
+ * tests damage shape and basis files with it. */
+static inline void damage_file(const char *path) {
+  FILE *f = fopen(path, "r+b");
+  REQUIRE(f);
+  fseek(f, 0, SEEK_END);
+  long sz = ftell(f);
+  fseek(f, sz / 2, SEEK_SET);
+  int ch = fgetc(f);
+  fseek(f, sz / 2, SEEK_SET);
+  fputc(ch ^ 0x5a, f);
+  fclose(f);
+}
+
 /* Starts the daemon on g_dir/data; returns its port, or -1 (it exited or never listened
  * within 60 s). */
 static inline int start_daemon_with(const char *common, const char *extra) {

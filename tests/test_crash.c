@@ -100,19 +100,6 @@ static uint64_t stat_value(sm_client *c, const char *name) {
 
 static void hex_of(const uint8_t id[32], char hex[65]) { sm_client_id_to_hex(id, hex); }
 
-/* Flips a byte in the middle of a file. */
-static void damage(const char *path) {
-  FILE *f = fopen(path, "r+b");
-  REQUIRE(f);
-  fseek(f, 0, SEEK_END);
-  long sz = ftell(f);
-  fseek(f, sz / 2, SEEK_SET);
-  int ch = fgetc(f);
-  fseek(f, sz / 2, SEEK_SET);
-  fputc(ch ^ 0x5a, f);
-  fclose(f);
-}
-
 /* Damages, at rest, the stored file of the last undamaged acknowledged shape and the first
  * basis file found; returns how many basis files it damaged (0 or 1). */
 static int damage_at_rest(void) {
@@ -121,7 +108,7 @@ static int damage_at_rest(void) {
     if (g_acked[i].damaged) continue;
     hex_of(g_acked[i].id, hex);
     snprintf(path, sizeof path, "%s/data/shapes/%s.drc", g_dir, hex);
-    damage(path);
+    damage_file(path);
     g_acked[i].damaged = 1;
     break;
   }
@@ -133,7 +120,7 @@ static int damage_at_rest(void) {
     if (strstr(de->d_name, ".smb") && !strstr(de->d_name, ".tmp.")) {
       char f[1700];
       snprintf(f, sizeof f, "%s/%s", path, de->d_name);
-      damage(f);
+      damage_file(f);
       n = 1;
     }
   if (d) closedir(d);

@@ -450,13 +450,7 @@ static const char *shape_hex(const shape *s, char out[65]) {
 static void damage_shape_file(const shape *s) {
   char hex[65], path[1200];
   snprintf(path, sizeof path, "%s/data/shapes/%s.drc", g_dir, shape_hex(s, hex));
-  FILE *f = fopen(path, "r+b");
-  REQUIRE(f);
-  fseek(f, (long)s->len / 2, SEEK_SET);
-  int ch = fgetc(f);
-  fseek(f, (long)s->len / 2, SEEK_SET);
-  fputc(ch ^ 0x5a, f);
-  fclose(f);
+  damage_file(path);
 }
 
 /* 1 if the stored file of s holds exactly its bytes. */
@@ -1007,17 +1001,7 @@ int main(void) {
   /* ---------------- run 3: a corrupted basis file is detected and recomputed */
   char bpath[1200];
   REQUIRE(find_basis(&x, "el.", bpath, sizeof bpath) == 0);
-  {
-    FILE *f = fopen(bpath, "r+b");
-    REQUIRE(f);
-    fseek(f, 0, SEEK_END);
-    long sz = ftell(f);
-    fseek(f, sz / 2, SEEK_SET);
-    int ch = fgetc(f);
-    fseek(f, sz / 2, SEEK_SET);
-    fputc(ch ^ 0x5a, f);
-    fclose(f);
-  }
+  damage_file(bpath);
   port = start_daemon(NULL);
   REQUIRE(port > 0);
   fd = connect_to(port);
