@@ -217,6 +217,19 @@ static uint32_t has(int fd, const uint8_t id[32]) {
   return r.flags;
 }
 
+/* DROP_SHAPE; returns the status. */
+static uint16_t drop(int fd, const uint8_t id[32]) {
+  sm_proto_id_req q;
+  memcpy(q.id, id, 32);
+  sm_proto_header h = req_hdr(g_rid++);
+  SEND(fd, sm_proto_enc_id_req(buf, cap, &h, SM_OP_DROP_SHAPE, &q));
+  frame f;
+  REQUIRE(recv_frame(fd, &f) == 0);
+  uint16_t st = f.h.status;
+  frame_free(&f);
+  return st;
+}
+
 static void match_req(sm_proto_match_req *q, const shape *x, const shape *y, uint16_t flags) {
   memset(q, 0, sizeof *q);
   memcpy(q->x, x->id, 32);
@@ -538,16 +551,7 @@ static void test_bad_shapes(const shape *x, const shape *y) {
   CHECK(e.detail == 1 && strstr(msg, "--prepare-timeout-ms") != NULL);
   CHECK(strstr(msg, shape_hex(&big, (char[65]){0})) != NULL);
   CHECK(ping(fd, 11) == 0);
-  {
-    sm_proto_id_req q;
-    memcpy(q.id, big.id, 32);
-    sm_proto_header h = req_hdr(g_rid++);
-    SEND(fd, sm_proto_enc_id_req(buf, cap, &h, SM_OP_DROP_SHAPE, &q));
-    frame f;
-    REQUIRE(recv_frame(fd, &f) == 0);
-    CHECK(f.h.status == SM_ST_OK);
-    frame_free(&f);
-  }
+  CHECK(drop(fd, big.id) == SM_ST_OK);
   close(fd);
   CHECK(stop_daemon() == 0);
 
@@ -968,14 +972,7 @@ int main(void) {
   /* Unknown-id DROP, and DROP + re-PUT of a third shape. */
   {
     uint8_t zid[32] = {1, 2, 3};
-    sm_proto_id_req q;
-    memcpy(q.id, zid, 32);
-    sm_proto_header h = req_hdr(g_rid++);
-    SEND(fd, sm_proto_enc_id_req(buf, cap, &h, SM_OP_DROP_SHAPE, &q));
-    frame f;
-    REQUIRE(recv_frame(fd, &f) == 0);
-    CHECK(f.h.status == SM_ST_NOT_FOUND);
-    frame_free(&f);
+    CHECK(drop(fd, zid) == SM_ST_NOT_FOUND);
   }
   close(fd);
   CHECK(stop_daemon() == 0);
