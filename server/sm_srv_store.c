@@ -1,3 +1,4 @@
+#define _GNU_SOURCE /* F_OFD_SETLK */
 /* Shape store and prepared-shape cache: see sm_srv_store.h for the DESIGN. */
 #include "sm_srv_store.h"
 
@@ -23,6 +24,8 @@
 #define PATHBUF (SM_SRV_PATH_MAX + 512) /* dir + subdir + file name */
 #define BASIS_FORMAT 1 /* sm_basis_io's format version, part of the cache file name */
 #define N_DESC 100     /* WKS energies (sm_shape_opts_default) */
+#define LOCK_SPACE ((uint64_t)1 << 40) /* bytes of store.lock that names hash onto */
+#define RECHECKS 4 /* a file that keeps changing under a lookup is taken as it is then */
 
 enum { V_COMPUTING = 1, V_READY = 2 };
 
@@ -65,6 +68,8 @@ struct sm_store {
   pthread_mutex_t mu;
   pthread_cond_t cv;
   char dir[SM_SRV_PATH_MAX];
+  char lockpath[SM_SRV_PATH_MAX + 16]; /* <dir>/store.lock */
+  int64_t shapes_mtime_ns; /* shapes/ as of the last sync_dir (0: sync next time) */
   sm_limits lim;
   sm_store_key def;
   uint32_t max_components;
@@ -76,7 +81,7 @@ struct sm_store {
 
 static atomic_uint tmp_seq;
 
-static void forget_corrupt_locked(sm_store *st, entry *e, const char *why);
+static void forget_locked(sm_store *st, entry *e, int files);
 
 /* ---------------------------------------------------------------- helpers */
 
@@ -160,12 +165,89 @@ static void fsync_dir_of(const char *path) {
   }
 }
 
+/* ---------------------------------------------------------------- cross-process locks */
+
+/* Several daemons may share one data directory (docs/DEPLOY.md). Their mutexes say
+ * nothing to each other, so the steps where two processes could undo or repeat each
+ * other's work hold a lock on one byte of <dir>/store.lock chosen by the name of the file
+ * concerned: writing a shape file, deleting one found damaged, computing a basis, and
+ * deleting a leftover temp file. Open-file-description locks (F_OFD_SETLK) because they
+ * belong to the open file, so two threads of one daemon exclude each other as two
+ * daemons do, and the kernel releases them when the holder dies, SIGKILL included (a
+ * lock file that outlives a crash would wedge the store). Two names hashing onto one byte
+ * only wait for each other. */
+static uint64_t name_hash(const char *s) {
+  uint64_t h = 1469598103934665603ull; /* FNV-1a */
+  for (; *s; s++) h = (h ^ (unsigned char)*s) * 1099511628211ull;
+  return h;
+}
+
+static void sleep_ms(int ms) {
+  struct timespec ts = {ms / 1000, (long)(ms % 1000) * 1000000L};
+  while (nanosleep(&ts, &ts) && errno == EINTR) {
+  }
+}
+
+/* Locks name's byte; returns a descriptor for unlock_name, or -1 with errno. try: never
+ * wait (EAGAIN when held). cancel: poll it every 20 ms while another holder has the
+ * byte (ECANCELED when it says so); NULL waits in the kernel. */
+static int lock_name(const sm_store *st, const char *name, int try, int (*cancel)(void *),
+                     void *ud) {
+  int fd = open(st->lockpath, O_RDWR | O_CREAT | O_CLOEXEC, 0600);
+  if (fd < 0) return -1;
+  struct flock fl;
+  memset(&fl, 0, sizeof fl);
+  fl.l_type = F_WRLCK;
+  fl.l_whence = SEEK_SET;
+  fl.l_start = (off_t)(name_hash(name) % LOCK_SPACE);
+  fl.l_len = 1;
+  int block = !try && !cancel;
+  for (;;) {
+    if (fcntl(fd, block ? F_OFD_SETLKW : F_OFD_SETLK, &fl) == 0) return fd;
+    int e = errno;
+    if (e != EINTR) {
+      if (try || (e != EAGAIN && e != EACCES)) {
+        close(fd);
+        errno = try && e == EACCES ? EAGAIN : e;
+        return -1;
+      }
+      if (cancel(ud)) {
+        close(fd);
+        errno = ECANCELED;
+        return -1;
+      }
+      sleep_ms(20);
+    }
+  }
+}
+
+static void unlock_name(int fd) {
+  if (fd >= 0) close(fd); /* closing the description releases its lock */
+}
+
+/* Deletes a temp file left by an interrupted write in subdir, unless its writer is alive:
+ * writers hold the lock of the final name from creating the temp file to the rename. */
+static void remove_stale_temp(const sm_store *st, const char *subdir, const char *name) {
+  const char *t = strstr(name, ".tmp.");
+  char final[300], p[PATHBUF];
+  snprintf(final, sizeof final, "%.*s", (int)(t - name), name);
+  int fd = lock_name(st, final, 1, NULL, NULL);
+  if (fd < 0) return;
+  snprintf(p, sizeof p, "%s/%s/%s", st->dir, subdir, name);
+  unlink(p);
+  unlock_name(fd);
+}
+
 /* temp + fsync + rename + directory fsync. */
 static int write_atomic(const char *path, const uint8_t *buf, size_t len, sm_error *err) {
   char tmp[PATHBUF + 64];
-  snprintf(tmp, sizeof tmp, "%s.tmp.%ld.%u", path, (long)getpid(),
-           atomic_fetch_add(&tmp_seq, 1u));
-  int fd = open(tmp, O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0600);
+  int fd = -1;
+  for (int tries = 0; tries < 100 && fd < 0; tries++) { /* EEXIST: a dead writer's name */
+    snprintf(tmp, sizeof tmp, "%s.tmp.%ld.%u", path, (long)getpid(),
+             atomic_fetch_add(&tmp_seq, 1u));
+    fd = open(tmp, O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0600);
+    if (fd < 0 && errno != EEXIST) break;
+  }
   if (fd < 0) return sm_error_set(err, SM_EIO, "%s: %s", tmp, strerror(errno));
   size_t off = 0;
   while (off < len) {
@@ -248,67 +330,151 @@ static void maybe_free_entry(entry *e) {
   if (e->dropped && e->pins == 0 && !e->vars) free(e);
 }
 
-/* ---------------------------------------------------------------- open / scan */
+/* ---------------------------------------------------------------- verify / index */
 
-static int load_shape_file(sm_store *st, const char *name) {
-  size_t nl = strlen(name);
-  if (nl != 68 || strcmp(name + 64, ".drc")) {
-    char p[PATHBUF];
-    snprintf(p, sizeof p, "%s/shapes/%s", st->dir, name);
-    if (strstr(name, ".tmp.")) /* a crash between create and rename */
-      unlink(p);
-    else /* not ours to delete, but never silently ignored */
-      sm_log("warn", "store: stray file in shapes/ ignored (not named <sha256>.drc)",
-             " path=%s", p);
-    return 0;
-  }
+enum { VF_OK, VF_GONE, VF_BAD, VF_UNREADABLE };
+
+typedef struct vfile {
+  uint32_t nv, nf;
+  uint64_t bytes;
+  file_sig sig; /* taken before reading: a later change is seen by the next check */
+  char why[256];
+} vfile;
+
+/* Checks shapes/<hex>.drc: its SHA-256 must be its name and, with decode, it must decode
+ * within the limits (counts filled). VF_GONE: no such file. */
+static int verify_file(const sm_store *st, const char *hex, int decode, vfile *out) {
   char path[PATHBUF];
-  snprintf(path, sizeof path, "%s/shapes/%s", st->dir, name);
+  shape_path(st, hex, path, sizeof path);
+  memset(out, 0, sizeof *out);
+  if (file_sig_of(path, &out->sig)) {
+    snprintf(out->why, sizeof out->why, "%s", strerror(errno));
+    return errno == ENOENT ? VF_GONE : VF_UNREADABLE;
+  }
   uint8_t *buf = NULL;
   size_t len = 0;
   sm_error err;
-  int rc = sm_read_file_bytes(path, (size_t)1 << 34, &buf, &len, &err);
-  if (rc) {
-    sm_log("warn", "store: unreadable shape file", " path=%s err=\"%s\"", path, err.msg);
-    return 0;
+  if (sm_read_file_bytes(path, (size_t)1 << 34, &buf, &len, &err)) {
+    struct stat sb;
+    snprintf(out->why, sizeof out->why, "%s", err.msg);
+    return stat(path, &sb) && errno == ENOENT ? VF_GONE : VF_UNREADABLE;
   }
   uint8_t id[32];
-  char hex[65];
+  char got[65];
   sm_sha256(buf, len, id);
-  sm_hex(id, 32, hex);
-  sm_mesh *m = NULL;
-  if (memcmp(hex, name, 64)) {
-    rc = SM_ECHECKSUM;
-    snprintf(err.msg, sizeof err.msg, "SHA-256 %s does not match the file name", hex);
-  } else {
-    rc = sm_draco_decode(buf, len, &st->lim, &m, &err);
+  sm_hex(id, 32, got);
+  int r = VF_OK;
+  if (memcmp(got, hex, 64)) {
+    r = VF_BAD;
+    snprintf(out->why, sizeof out->why, "SHA-256 %s does not match the file name", got);
+  } else if (decode) {
+    sm_mesh *m = NULL;
+    if (sm_draco_decode(buf, len, &st->lim, &m, &err)) {
+      r = VF_BAD;
+      snprintf(out->why, sizeof out->why, "%s", err.msg);
+    } else {
+      out->nv = (uint32_t)m->nv;
+      out->nf = (uint32_t)m->nf;
+      sm_mesh_destroy(m);
+    }
   }
+  out->bytes = len;
   free(buf);
-  if (rc) {
-    sm_log("warn", "store: corrupt shape file deleted", " path=%s err=\"%s\"", path, err.msg);
+  return r;
+}
+
+/* A file that failed verify_file is deleted only if it still fails under its lock:
+ * another daemon may have just renamed good bytes over it (a PUT that heals it). Returns
+ * the second verdict; VF_UNREADABLE (and the file left alone) when it cannot lock. */
+static int delete_if_bad(const sm_store *st, const char *hex, int decode, vfile *vf) {
+  char name[80], path[PATHBUF];
+  snprintf(name, sizeof name, "%s.drc", hex);
+  int fd = lock_name(st, name, 0, NULL, NULL);
+  if (fd < 0) {
+    snprintf(vf->why, sizeof vf->why, "cannot lock store.lock: %s", strerror(errno));
+    return VF_UNREADABLE;
+  }
+  int r = verify_file(st, hex, decode, vf);
+  if (r == VF_BAD) {
+    shape_path(st, hex, path, sizeof path);
     unlink(path);
-    st->s.shapes_corrupt++;
-    return 0;
   }
-  entry *e = calloc(1, sizeof *e);
-  if (!e) {
-    sm_mesh_destroy(m);
-    return -1;
-  }
+  unlock_name(fd);
+  return r;
+}
+
+/* Indexes a verified file unless it already is. Under st->mu. */
+static entry *index_insert_locked(sm_store *st, const uint8_t id[32], const char *hex,
+                                  const vfile *vf) {
+  entry *e = find(st, id);
+  if (e) return e;
+  if (!(e = calloc(1, sizeof *e))) return NULL;
   memcpy(e->id, id, 32);
   memcpy(e->hex, hex, 65);
-  e->nv = (uint32_t)m->nv;
-  e->nf = (uint32_t)m->nf;
-  e->bytes = len;
-  sm_mesh_destroy(m);
-  if (file_sig_of(path, &e->sig)) memset(&e->sig, 0, sizeof e->sig);
+  e->nv = vf->nv;
+  e->nf = vf->nf;
+  e->bytes = vf->bytes;
+  e->sig = vf->sig;
   unsigned b = bucket_of(id);
   e->hnext = st->buckets[b];
   st->buckets[b] = e;
   st->s.shapes++;
-  st->s.shapes_bytes += len;
+  st->s.shapes_bytes += vf->bytes;
+  return e;
+}
+
+/* Verifies and indexes shapes/<hex>.drc (startup scan, or a shape that another daemon
+ * sharing the data directory stored: this daemon's index only knows what it scanned and
+ * what it stored itself). A damaged file is deleted (counted shapes_corrupt). Without
+ * st->mu. Returns 1 if the shape is now indexed, 0 if not, -1 out of memory. */
+static int adopt(sm_store *st, const uint8_t id[32], const char *hex) {
+  vfile vf;
+  int r = verify_file(st, hex, 1, &vf);
+  if (r == VF_BAD) r = delete_if_bad(st, hex, 1, &vf);
+  if (r == VF_BAD) {
+    sm_log("warn", "store: corrupt shape file deleted", " id=%s err=\"%s\"", hex, vf.why);
+  } else if (r == VF_UNREADABLE) {
+    sm_log("warn", "store: unreadable shape file", " id=%s err=\"%s\"", hex, vf.why);
+  }
+  pthread_mutex_lock(&st->mu);
+  int rc = 0;
+  if (r == VF_BAD) st->s.shapes_corrupt++;
+  if (r == VF_OK) rc = index_insert_locked(st, id, hex, &vf) ? 1 : -1;
+  pthread_mutex_unlock(&st->mu);
+  return rc;
+}
+
+static int id_of_name(const char *name, uint8_t id[32]) {
+  if (strlen(name) != 68 || strcmp(name + 64, ".drc")) return -1;
+  for (int i = 0; i < 64; i++) {
+    char c = name[i];
+    int v = c >= '0' && c <= '9' ? c - '0' : c >= 'a' && c <= 'f' ? c - 'a' + 10 : -1;
+    if (v < 0) return -1;
+    if (i % 2) id[i / 2] |= (uint8_t)v;
+    else id[i / 2] = (uint8_t)(v << 4);
+  }
   return 0;
 }
+
+static int load_shape_file(sm_store *st, const char *name) {
+  uint8_t id[32];
+  if (strstr(name, ".tmp.")) { /* a crash between create and rename */
+    remove_stale_temp(st, "shapes", name);
+    return 0;
+  }
+  if (id_of_name(name, id)) { /* not ours to delete, but never silently ignored */
+    char p[PATHBUF];
+    snprintf(p, sizeof p, "%s/shapes/%s", st->dir, name);
+    sm_log("warn", "store: stray file in shapes/ ignored (not named <sha256>.drc)",
+           " path=%s", p);
+    return 0;
+  }
+  char hex[65];
+  snprintf(hex, sizeof hex, "%.64s", name);
+  return adopt(st, id, hex) < 0 ? -1 : 0;
+}
+
+/* ---------------------------------------------------------------- open / scan */
 
 int sm_store_open(const char *dir, uint64_t cache_bytes, const sm_limits *lim,
                   const sm_store_key *default_key, sm_store **out, sm_error *err) {
@@ -316,6 +482,7 @@ int sm_store_open(const char *dir, uint64_t cache_bytes, const sm_limits *lim,
   sm_store *st = calloc(1, sizeof *st);
   if (!st) return sm_error_set(err, SM_ENOMEM, "store: out of memory");
   snprintf(st->dir, sizeof st->dir, "%s", dir);
+  snprintf(st->lockpath, sizeof st->lockpath, "%s/store.lock", dir);
   st->lim = *lim;
   st->def = *default_key;
   st->budget = cache_bytes;
@@ -330,6 +497,13 @@ int sm_store_open(const char *dir, uint64_t cache_bytes, const sm_limits *lim,
       return sm_error_set(err, SM_EIO, "%s: %s", p, strerror(e));
     }
   }
+  int lfd = open(st->lockpath, O_RDWR | O_CREAT | O_CLOEXEC, 0600);
+  if (lfd < 0) {
+    int e = errno;
+    sm_store_close(st);
+    return sm_error_set(err, SM_EIO, "%s: %s", st->lockpath, strerror(e));
+  }
+  close(lfd);
   snprintf(p, sizeof p, "%s/shapes", dir);
   DIR *d = opendir(p);
   if (!d) {
@@ -349,11 +523,7 @@ int sm_store_open(const char *dir, uint64_t cache_bytes, const sm_limits *lim,
   snprintf(p, sizeof p, "%s/bases", dir);
   if ((d = opendir(p))) {
     while ((de = readdir(d)))
-      if (strstr(de->d_name, ".tmp.")) {
-        char f[PATHBUF];
-        snprintf(f, sizeof f, "%s/%s", p, de->d_name);
-        unlink(f);
-      }
+      if (strstr(de->d_name, ".tmp.")) remove_stale_temp(st, "bases", de->d_name);
     closedir(d);
   }
   *out = st;
@@ -413,15 +583,37 @@ static int check_preparable(const sm_store *st, const sm_mesh *c, const sm_clean
   return SM_OK;
 }
 
+/* Stores bytes as shapes/<hex>.drc unless the file already holds them, under the name's
+ * lock: two daemons storing one shape write it once, and delete_if_bad never removes
+ * bytes renamed in meanwhile. An identical file is left alone, which also keeps the inode
+ * that other daemons' indexes remember. *wrote = 1 if written. */
+static int write_shape_file(sm_store *st, const char *hex, const uint8_t *draco, size_t len,
+                            int *wrote, sm_error *err) {
+  char name[80], path[PATHBUF];
+  *wrote = 0;
+  snprintf(name, sizeof name, "%s.drc", hex);
+  shape_path(st, hex, path, sizeof path);
+  int fd = lock_name(st, name, 0, NULL, NULL);
+  if (fd < 0)
+    return sm_error_set(err, SM_EIO, "%s: cannot lock: %s", st->lockpath, strerror(errno));
+  int rc = SM_OK;
+  if (!stored_file_matches(st, hex, draco, len)) {
+    rc = write_atomic(path, draco, len, err);
+    *wrote = rc == SM_OK;
+  }
+  unlock_name(fd);
+  return rc;
+}
+
 /* Re-PUT of a stored id: the bytes are verified, so they can repair a file that was
  * damaged or removed behind the daemon's back. */
 static int put_existing(sm_store *st, const uint8_t id[32], const char *hex,
                         const uint8_t *draco, size_t len, int *existed, sm_error *err) {
-  if (stored_file_matches(st, hex, draco, len)) return SM_OK;
+  int wrote;
+  int rc = write_shape_file(st, hex, draco, len, &wrote, err);
+  if (rc || !wrote) return rc;
   char path[PATHBUF];
   shape_path(st, hex, path, sizeof path);
-  int rc = write_atomic(path, draco, len, err);
-  if (rc) return rc;
   pthread_mutex_lock(&st->mu);
   entry *e = find(st, id);
   if (e && file_sig_of(path, &e->sig)) memset(&e->sig, 0, sizeof e->sig);
@@ -436,7 +628,7 @@ int sm_store_put(sm_store *st, const uint8_t id[32], const uint8_t *draco, size_
                  uint32_t *nv, uint32_t *nf, int *existed, sm_error *err) {
   *existed = 0;
   uint8_t got[32];
-  char hex[65], path[PATHBUF];
+  char hex[65];
   sm_sha256(draco, len, got);
   sm_hex(id, 32, hex);
   if (memcmp(got, id, 32)) {
@@ -461,34 +653,27 @@ int sm_store_put(sm_store *st, const uint8_t id[32], const uint8_t *draco, size_
   if (rc) return rc;
   rc = sm_mesh_clean(m, &st->lim, &c, &rep, err);
   if (!rc) rc = check_preparable(st, c, &rep, err);
-  uint32_t v = (uint32_t)m->nv, f = (uint32_t)m->nf;
+  vfile vf;
+  memset(&vf, 0, sizeof vf);
+  vf.nv = (uint32_t)m->nv;
+  vf.nf = (uint32_t)m->nf;
+  vf.bytes = len;
   sm_mesh_destroy(m);
   sm_mesh_destroy(c);
   if (rc) return rc;
 
-  shape_path(st, hex, path, sizeof path);
-  rc = write_atomic(path, draco, len, err);
+  int wrote;
+  char path[PATHBUF];
+  rc = write_shape_file(st, hex, draco, len, &wrote, err);
   if (rc) return rc;
+  shape_path(st, hex, path, sizeof path);
+  if (file_sig_of(path, &vf.sig)) memset(&vf.sig, 0, sizeof vf.sig);
 
   pthread_mutex_lock(&st->mu);
-  e = find(st, id);
-  if (e) {
-    *existed = 1;
-  } else if ((e = calloc(1, sizeof *e))) {
-    memcpy(e->id, id, 32);
-    memcpy(e->hex, hex, 65);
-    e->nv = v;
-    e->nf = f;
-    e->bytes = len;
-    if (file_sig_of(path, &e->sig)) memset(&e->sig, 0, sizeof e->sig);
-    unsigned b = bucket_of(id);
-    e->hnext = st->buckets[b];
-    st->buckets[b] = e;
-    st->s.shapes++;
-    st->s.shapes_bytes += len;
-  } else {
+  /* Not written: another daemon sharing the data directory stored these bytes first. */
+  *existed = find(st, id) != NULL || !wrote;
+  if (!(e = index_insert_locked(st, id, hex, &vf)))
     rc = sm_error_set(err, SM_ENOMEM, "store: out of memory");
-  }
   if (e) {
     *nv = e->nv;
     *nf = e->nf;
@@ -497,21 +682,55 @@ int sm_store_put(sm_store *st, const uint8_t id[32], const uint8_t *draco, size_
   return rc;
 }
 
+/* e's file no longer has the signature it was verified with: another daemon renamed
+ * identical bytes over it (content-addressed, so that is harmless), dropped it, or it
+ * was damaged. Reads it again and keeps, or forgets, the shape. Without st->mu; returns
+ * the verdict (VF_OK: still indexed, with the new signature). */
+static int revalidate(sm_store *st, const uint8_t id[32], const char *hex) {
+  vfile vf;
+  int r = verify_file(st, hex, 0, &vf);
+  if (r == VF_BAD) r = delete_if_bad(st, hex, 0, &vf);
+  pthread_mutex_lock(&st->mu);
+  entry *e = find(st, id);
+  if (e && r == VF_OK) {
+    e->sig = vf.sig;
+  } else if (e && r == VF_GONE) {
+    sm_log("info", "store: shape file gone (dropped by a daemon sharing the data directory, "
+           "or removed), shape forgotten", " id=%s", hex);
+    forget_locked(st, e, 0);
+  } else if (e) { /* a damaged file was deleted by delete_if_bad; an unreadable one stays */
+    sm_log("warn", "store: shape file changed on disk, shape forgotten", " id=%s err=\"%s\"",
+           hex, vf.why);
+    if (r == VF_BAD) st->s.shapes_corrupt++;
+    forget_locked(st, e, 0);
+  }
+  pthread_mutex_unlock(&st->mu);
+  return r;
+}
+
 int sm_store_has(sm_store *st, const uint8_t id[32], uint32_t *nv, uint32_t *nf,
                  int *prepared) {
   *nv = *nf = 0;
   *prepared = 0;
   char hex[65];
+  sm_hex(id, 32, hex);
   pthread_mutex_lock(&st->mu);
   entry *e = find(st, id);
-  if (e && !entry_file_intact(st, e)) {
-    forget_corrupt_locked(st, e, "HAS");
-    e = NULL;
+  for (int i = 0; i < RECHECKS && e && !entry_file_intact(st, e); i++) {
+    pthread_mutex_unlock(&st->mu);
+    revalidate(st, id, hex);
+    pthread_mutex_lock(&st->mu);
+    e = find(st, id);
+  }
+  if (!e) {
+    pthread_mutex_unlock(&st->mu);
+    int adopted = adopt(st, id, hex) > 0;
+    pthread_mutex_lock(&st->mu);
+    e = adopted ? find(st, id) : NULL;
   }
   if (e) {
     *nv = e->nv;
     *nf = e->nf;
-    memcpy(hex, e->hex, 65);
     for (variant *v = e->vars; v; v = v->next)
       if (v->state == V_READY && key_eq(&v->key, &st->def)) *prepared = 1;
   }
@@ -545,8 +764,10 @@ static void unlink_bases(const sm_store *st, const char *hex) {
   closedir(dd);
 }
 
-/* Removes e from the index, the cache and the disk (DROP, or a file found corrupt). */
-static void forget_locked(sm_store *st, entry *e) {
+/* Removes e from the index and the cache; with files (DROP), its files too. A shape whose
+ * file was found damaged or gone keeps its bases: they are checked against the mesh they
+ * belong to when loaded, so they can only serve the same bytes stored again. */
+static void forget_locked(sm_store *st, entry *e, int files) {
   unlink_entry(st, e);
   e->dropped = 1;
   st->s.shapes--;
@@ -558,6 +779,7 @@ static void forget_locked(sm_store *st, entry *e) {
   char hex[65], p[PATHBUF];
   memcpy(hex, e->hex, 65);
   maybe_free_entry(e);
+  if (!files) return;
   /* Unlinks under the lock so that a PUT of the same id racing with this DROP cannot have
    * its fresh file deleted afterwards. */
   shape_path(st, hex, p, sizeof p);
@@ -566,37 +788,46 @@ static void forget_locked(sm_store *st, entry *e) {
 }
 
 int sm_store_drop(sm_store *st, const uint8_t id[32]) {
+  char hex[65];
+  sm_hex(id, 32, hex);
   pthread_mutex_lock(&st->mu);
   entry *e = find(st, id);
-  if (!e) {
+  if (!e) { /* perhaps stored by another daemon sharing the data directory */
     pthread_mutex_unlock(&st->mu);
-    return SM_STORE_ENOTFOUND;
+    if (adopt(st, id, hex) <= 0) return SM_STORE_ENOTFOUND;
+    pthread_mutex_lock(&st->mu);
+    if (!(e = find(st, id))) {
+      pthread_mutex_unlock(&st->mu);
+      return SM_STORE_ENOTFOUND;
+    }
   }
-  forget_locked(st, e);
+  forget_locked(st, e, 1);
   pthread_mutex_unlock(&st->mu);
   return SM_OK;
 }
 
-/* A stored file that changed or vanished behind the daemon's back: it can no longer be
- * trusted, so the shape is forgotten (HAS says not stored, QUERY skips it) until a PUT of
- * the right bytes stores it again. */
-static void forget_corrupt_locked(sm_store *st, entry *e, const char *why) {
-  sm_log("warn", "store: shape file changed on disk, shape forgotten", " id=%s why=%s",
-         e->hex, why);
-  st->s.shapes_corrupt++;
-  forget_locked(st, e);
-}
-
 /* ---------------------------------------------------------------- prepare */
+
+/* The NOT_FOUND error of acquire for a file revalidate did not keep. */
+static int not_stored(sm_error *err, int verdict) {
+  if (verdict == VF_GONE)
+    return sm_error_set(err, SM_STORE_ENOTFOUND, "shape not stored (its file was dropped)");
+  if (verdict == VF_UNREADABLE)
+    return sm_error_set(err, SM_STORE_ENOTFOUND,
+                        "the stored file cannot be read (see the daemon's log); PUT the shape "
+                        "again");
+  return sm_error_set(err, SM_STORE_ENOTFOUND,
+                      "the stored file was damaged on disk and has been removed; PUT the shape "
+                      "again");
+}
 
 static uint64_t us_since(uint64_t t0) { return (sm_srv_now_ns() - t0) / 1000; }
 
 /* Loads a verified basis from disk or computes and saves it. */
-static int get_basis(sm_store *st, const char *hex, const sm_mesh *m, int kind, int k,
-                     double eta, int (*cancel)(void *), void *ud, sm_basis **out,
-                     sm_store_prep_info *info, uint64_t *t_us, sm_error *err) {
-  char path[PATHBUF];
-  basis_path(st, hex, kind, k, kind == SM_BASIS_LB ? 0.0 : eta, path, sizeof path);
+static int load_or_compute_basis(sm_store *st, const char *path, const sm_mesh *m, int kind,
+                                 int k, double eta, int (*cancel)(void *), void *ud,
+                                 sm_basis **out, sm_store_prep_info *info, uint64_t *t_us,
+                                 sm_error *err) {
   uint64_t t0 = sm_srv_now_ns();
   struct stat sb;
   if (stat(path, &sb) == 0) {
@@ -641,6 +872,29 @@ static int get_basis(sm_store *st, const char *hex, const sm_mesh *m, int kind, 
   if (sm_basis_save(*out, path, &serr))
     sm_log("warn", "store: cannot save basis", " path=%s err=\"%s\"", path, serr.msg);
   return SM_OK;
+}
+
+/* load_or_compute_basis under the basis file's lock: a daemon sharing the data directory
+ * that needs the same basis waits for it and loads the file instead of computing it
+ * again (single-flight across daemons, as store->cv is within one). */
+static int get_basis(sm_store *st, const char *hex, const sm_mesh *m, int kind, int k,
+                     double eta, int (*cancel)(void *), void *ud, sm_basis **out,
+                     sm_store_prep_info *info, uint64_t *t_us, sm_error *err) {
+  char path[PATHBUF];
+  basis_path(st, hex, kind, k, kind == SM_BASIS_LB ? 0.0 : eta, path, sizeof path);
+  uint64_t t0 = sm_srv_now_ns();
+  int fd = lock_name(st, strrchr(path, '/') + 1, 0, cancel, ud);
+  if (fd < 0 && errno == ECANCELED) {
+    *t_us = us_since(t0);
+    return sm_error_set(err, SM_ECANCELED, "cancelled while another daemon computed the basis");
+  }
+  if (fd < 0) /* no lock: at worst the basis is computed twice (the rename is atomic) */
+    sm_log("warn", "store: cannot lock, computing without", " path=%s err=\"%s\"", st->lockpath,
+           strerror(errno));
+  int rc = load_or_compute_basis(st, path, m, kind, k, eta, cancel, ud, out, info, t_us, err);
+  *t_us = us_since(t0); /* includes the wait */
+  unlock_name(fd);
+  return rc;
 }
 
 static int compute_variant(sm_store *st, const char *hex, const sm_store_key *key,
@@ -718,15 +972,26 @@ int sm_store_acquire(sm_store *st, const uint8_t id[32], const sm_store_key *key
                      sm_store_prep_info *info, sm_error *err) {
   *out = NULL;
   memset(info, 0, sizeof *info);
+  char hex0[65];
+  sm_hex(id, 32, hex0);
+  int rechecks = 0, adopted = 0;
   pthread_mutex_lock(&st->mu);
   for (;;) {
     entry *e = find(st, id);
-    if (e && !e->pins && !entry_file_intact(st, e)) {
-      forget_corrupt_locked(st, e, "acquire");
+    if (e && !e->pins && rechecks < RECHECKS && !entry_file_intact(st, e)) {
+      rechecks++;
       pthread_mutex_unlock(&st->mu);
-      return sm_error_set(err, SM_STORE_ENOTFOUND,
-                          "the stored file was damaged on disk and has been removed; PUT the "
-                          "shape again");
+      int r = revalidate(st, id, hex0);
+      if (r != VF_OK) return not_stored(err, r);
+      pthread_mutex_lock(&st->mu);
+      continue;
+    }
+    if (!e && !adopted) {
+      adopted = 1;
+      pthread_mutex_unlock(&st->mu);
+      adopt(st, id, hex0);
+      pthread_mutex_lock(&st->mu);
+      continue;
     }
     if (!e) {
       pthread_mutex_unlock(&st->mu);
@@ -782,11 +1047,13 @@ int sm_store_acquire(sm_store *st, const uint8_t id[32], const sm_store_key *key
     var_unlink(e, v);
     if (rc == SM_STORE_ECORRUPT) {
       free(v);
-      if (!e->dropped) forget_corrupt_locked(st, e, "content");
-      sm_error_set(err, SM_STORE_ENOTFOUND,
-                   "the stored file was damaged on disk and has been removed; PUT the shape "
-                   "again");
-      rc = SM_STORE_ENOTFOUND;
+      pthread_cond_broadcast(&st->cv);
+      maybe_free_entry(e);
+      pthread_mutex_unlock(&st->mu);
+      int r = revalidate(st, id, hex); /* e is not used again: DROP may free it */
+      if (r != VF_OK || ++rechecks > RECHECKS) return not_stored(err, r == VF_OK ? VF_BAD : r);
+      pthread_mutex_lock(&st->mu); /* replaced by good bytes meanwhile: again */
+      continue;
     } else if (rc) {
       free(v);
     } else if (e->dropped) {
@@ -825,7 +1092,75 @@ void sm_store_release(sm_store *st, sm_prepared *p) {
 
 const sm_shape *sm_prepared_shape(const sm_prepared *p) { return p->shape; }
 
+static int cmp_id(const void *a, const void *b) { return memcmp(a, b, 32); }
+
+/* QUERY ranks every stored shape, including those another daemon sharing the data
+ * directory stored or dropped since this one looked: when shapes/ changed (its mtime),
+ * its new files are adopted and the entries whose file went away are forgotten. */
+static void sync_dir(sm_store *st) {
+  char p[PATHBUF];
+  struct stat sb;
+  snprintf(p, sizeof p, "%s/shapes", st->dir);
+  if (stat(p, &sb)) return;
+  int64_t mt = (int64_t)sb.st_mtim.tv_sec * 1000000000 + sb.st_mtim.tv_nsec;
+  pthread_mutex_lock(&st->mu);
+  int same = mt == st->shapes_mtime_ns;
+  pthread_mutex_unlock(&st->mu);
+  if (same) return;
+  DIR *d = opendir(p);
+  if (!d) return;
+  uint8_t *ids = NULL;
+  size_t n = 0, cap = 0;
+  struct dirent *de;
+  while ((de = readdir(d))) {
+    if (n == cap) {
+      uint8_t *g = realloc(ids, (cap = cap ? 2 * cap : 256) * 32);
+      if (!g) break;
+      ids = g;
+    }
+    if (!id_of_name(de->d_name, ids + 32 * n)) n++;
+  }
+  closedir(d);
+  if (!ids) return;
+  qsort(ids, n, 32, cmp_id);
+  char hex[65];
+  for (size_t i = 0; i < n; i++) {
+    pthread_mutex_lock(&st->mu);
+    int known = find(st, ids + 32 * i) != NULL;
+    pthread_mutex_unlock(&st->mu);
+    if (!known) {
+      sm_hex(ids + 32 * i, 32, hex);
+      adopt(st, ids + 32 * i, hex);
+    }
+  }
+  /* Entries whose file is not listed: revalidate decides (gone, or renamed in since). */
+  uint8_t *gone = NULL;
+  size_t ng = 0;
+  pthread_mutex_lock(&st->mu);
+  if (st->s.shapes && (gone = malloc(st->s.shapes * 32)))
+    for (unsigned b = 0; b < NBUCKETS; b++)
+      for (entry *e = st->buckets[b]; e && ng < st->s.shapes; e = e->hnext)
+        if (!bsearch(e->id, ids, n, 32, cmp_id)) memcpy(gone + 32 * ng++, e->id, 32);
+  pthread_mutex_unlock(&st->mu);
+  for (size_t i = 0; i < ng; i++) {
+    sm_hex(gone + 32 * i, 32, hex);
+    revalidate(st, gone + 32 * i, hex);
+  }
+  free(gone);
+  free(ids);
+  /* Remembered only once it is in the past by more than any file system's timestamp
+   * granularity: a change in the same tick as this scan would otherwise go unseen. */
+  struct timespec now;
+  clock_gettime(CLOCK_REALTIME, &now);
+  if ((int64_t)now.tv_sec * 1000000000 + now.tv_nsec - mt > 2000000000) {
+    pthread_mutex_lock(&st->mu);
+    st->shapes_mtime_ns = mt;
+    pthread_mutex_unlock(&st->mu);
+  }
+}
+
 int sm_store_list(sm_store *st, uint8_t **ids, size_t *n) {
+  sync_dir(st);
   pthread_mutex_lock(&st->mu);
   size_t cnt = st->s.shapes, i = 0;
   uint8_t *out = malloc(cnt ? cnt * 32 : 1);

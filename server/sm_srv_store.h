@@ -24,6 +24,21 @@
  *     If the computation fails or is cancelled the variant is removed and one waiter
  *     retries.
  *
+ *   Several daemons may share one data directory (docs/DEPLOY.md): every file is written
+ *     whole and renamed in, and a shape's file name is the SHA-256 of its bytes, so two
+ *     writers of one name write the same bytes. What remains is kept safe by
+ *     open-file-description locks on bytes of <dir>/store.lock, one per file name
+ *     (released by the kernel when a daemon dies): a shape file is written only if it
+ *     does not already hold the bytes (an identical file keeps its inode), a file is
+ *     deleted as damaged only if it still fails its check under its lock (another
+ *     daemon may just have healed it), a basis is computed under its lock (the others
+ *     wait and load the file: bases are computed once for all the daemons), and a
+ *     leftover temp file is deleted only if no live writer holds its lock.
+ *     Each daemon's index learns about the others' work from the disk: a missing id is
+ *     looked up in shapes/ (HAS, PREPARE, MATCH, DROP...), a changed signature is
+ *     re-verified (identical bytes renamed over it are kept; a file gone was dropped),
+ *     and QUERY re-reads shapes/ when its mtime changed. The cache stays per daemon.
+ *
  * Contract: every function is thread-safe (one mutex, never held during computation or
  *   file I/O except the unlinks of DROP). Ids are 32 raw bytes. Returns 0 or a negative
  *   SM_E* code (sm_error.h) or SM_STORE_ENOTFOUND / SM_STORE_EIDMISMATCH, with a message.
@@ -81,9 +96,11 @@ void sm_store_set_max_components(sm_store *st, uint32_t max_components);
  * than twice as many vertices as basis functions: SM_EUNSUPPORTED), writes the file.
  * *existed = 1 if it was already stored with these bytes; a stored file that no longer
  * holds them (damaged or removed behind the daemon's back) is rewritten (*existed = 0).
- * A file found changed on disk (size, mtime or inode differ from when it was verified;
- * checked by HAS and acquire) or whose content fails its SHA-256 makes the shape
- * forgotten: it is reported as not stored (counted shapes_corrupt) until PUT again. */
+ * *existed = 1 also when another daemon sharing the directory stored it. A file found
+ * changed on disk (size, mtime or inode differ from when it was verified; checked by HAS
+ * and acquire) is read again: the same bytes are kept; content that fails its SHA-256 is
+ * deleted and the shape forgotten (counted shapes_corrupt), a file gone is forgotten
+ * quietly; either way it is reported as not stored until PUT again. */
 int sm_store_put(sm_store *st, const uint8_t id[32], const uint8_t *draco, size_t len,
                  uint32_t *nv, uint32_t *nf, int *existed, sm_error *err);
 /* 1 stored, 0 not. *prepared: default variant cached in memory or on disk. */
@@ -100,7 +117,8 @@ int sm_store_acquire(sm_store *st, const uint8_t id[32], const sm_store_key *key
 void sm_store_release(sm_store *st, sm_prepared *p);
 const sm_shape *sm_prepared_shape(const sm_prepared *p);
 
-/* Snapshot of every stored id (malloc'd, 32 bytes each). */
+/* Snapshot of every stored id (malloc'd, 32 bytes each), after looking for shapes other
+ * daemons stored or dropped in the shared directory (when shapes/ changed). */
 int sm_store_list(sm_store *st, uint8_t **ids, size_t *n);
 void sm_store_get_stats(sm_store *st, sm_store_stats *out);
 
