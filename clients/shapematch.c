@@ -34,8 +34,7 @@
 #include "sm_distance.h"
 #include "sm_metrics.h"
 #include "sm_client.h"
-
-#define SM_VERSION "0.1.0"
+#include "sm_version.h"
 
 static int usage(FILE *f) {
   fprintf(f,
@@ -64,7 +63,8 @@ static int usage(FILE *f) {
           "        [--gt-tgt FILE] [--gt-base 0|1] [--json]\n"
           "        geodesic error (Dijkstra on B's edges / sqrt(area B)), accuracy curve,\n"
           "        bijectivity, coverage, Chamfer and Dirichlet energy of a map A -> B\n"
-          "  version\n"
+          "  version | --version\n"
+          "        print the version (and the git commit of the build)\n"
           "\n"
           "server commands (--server HOST:PORT, or $SHAPEMATCH_SERVER; $SHAPEMATCH_TOKEN is\n"
           "sent as the HELLO token). A and B are mesh files, uploaded as needed (any\n"
@@ -1548,7 +1548,7 @@ int main(int argc, char **argv) {
     return cmd_stats(n, argv + 2, addr, !strcmp(cmd, "ping"));
   }
   if (!strcmp(cmd, "version") || !strcmp(cmd, "--version")) {
-    printf("shapematch %s\n", SM_VERSION);
+    SM_VERSION_PRINT(stdout, "shapematch");
     return 0;
   }
   if (!strcmp(cmd, "help") || !strcmp(cmd, "--help") || !strcmp(cmd, "-h")) {

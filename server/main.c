@@ -18,6 +18,7 @@
 #include "sm_srv_metrics.h"
 #include "sm_srv_pool.h"
 #include "sm_srv_store.h"
+#include "sm_version.h"
 
 volatile sig_atomic_t sm_srv_signal_flag = 0;
 
@@ -88,7 +89,8 @@ static void usage(FILE *f) {
           "  --max-components: PUT_SHAPE refuses a mesh with more connected components after\n"
           "    cleaning (default 64; each component needs its own rigid modes);\n"
           "  --token may also come from $SHAPEMATCH_TOKEN (keeps it out of ps), or from the\n"
-          "    first line of --token-file.\n");
+          "    first line of --token-file;\n"
+          "  --version prints the version (and the git commit of the build).\n");
 }
 
 static int parse_u(const char *s, unsigned long long lo, unsigned long long hi,
@@ -254,6 +256,10 @@ static int parse_args(int argc, char **argv, sm_srv_config *c) {
   for (int i = 1; i < argc; i++) {
     if (!strcmp(argv[i], "--help") || !strcmp(argv[i], "-h")) {
       usage(stdout);
+      exit(0);
+    }
+    if (!strcmp(argv[i], "--version")) {
+      SM_VERSION_PRINT(stdout, "shapematchd");
       exit(0);
     }
     if (!strcmp(argv[i], "--config")) {
