@@ -269,7 +269,6 @@ class Client:
         """The next frame for a queued request (see DESIGN): liveness PINGs after
         io_timeout of silence; Timeout past the deadline; None when `wake` comes first."""
         while True:
-            now = time.monotonic()
             points = [p for p in (deadline, wake, self._last_rx + self.io_timeout) if p is not None]
             f = self._recv_frame(min(points))
             if f is not None:

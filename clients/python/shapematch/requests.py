@@ -323,7 +323,8 @@ class MatchRequest(Request):
         head, off_xy, off_yx, off_fmap, conf = wire.dec_match(ctx.version, body)
         nx, ny, kc, init_used, flags = head[:5]
         if self.init_map and nx != len(self.init_map):
-            raise ProtocolViolation("map of %d entries for an init_map of %d" % (nx, len(self.init_map)))
+            raise ProtocolViolation("map of %d entries for an init_map of %d"
+                                    % (nx, len(self.init_map)))
         np = ctx.numpy
         fmap = None
         if kc:
