@@ -224,30 +224,39 @@ class AgainstCli(unittest.TestCase):
 
 class Batch(unittest.TestCase):
     def test_batch_equals_sequential(self):
+        """Client.batch (pipelined requests) and Client.server_batch (one BATCH request)
+        answer as the same calls made one after the other."""
         with shapematch.Client(ADDR) as c:
             a, b, d = (c.put(SHAPES[n]).id for n in ("blob1", "blob2", "blob3"))
             M, D, Q = shapematch.MatchRequest, shapematch.DistanceRequest, shapematch.QueryRequest
             reqs = [M(a, b), M(b, a, want_distance=True), D(a, d), M(d, a, basis="hybrid"),
                     Q(a, k=2, mode="spectral"), M(a, "f" * 64), shapematch.HasRequest(d)]
-            order = []
-            results = c.batch(reqs, inflight=4, callback=lambda i, r: order.append(i))
-            self.assertEqual(sorted(order), list(range(len(reqs))))
-            self.assertIsInstance(results[5], shapematch.StatusError)
-            self.assertEqual((results[5].name, results[5].detail), ("NOT_FOUND", 1))
             seq = [c.match(a, b), c.match(b, a, want_distance=True), c.distance(a, d),
                    c.match(d, a, basis="hybrid"), c.query(a, k=2, mode="spectral")]
-            for got, want in zip(results, seq):
-                if isinstance(want, shapematch.MatchResult):
-                    self.assertEqual(map_text(got.map), map_text(want.map))
-                    self.assertEqual((got.orientation, got.confidence, got.distance),
-                                     (want.orientation, want.confidence, want.distance))
-                elif isinstance(want, shapematch.DistanceResult):
-                    self.assertEqual(got.total, want.total)
-                    self.assertEqual(got.point_xy, want.point_xy)
-                else:
-                    self.assertEqual(got.hits, want.hits)
-            self.assertTrue(results[6].stored)
-            self.assertEqual(c.ping() >= 0, True)  # the connection is in step afterwards
+            # pipelined requests, then the same as one BATCH request (the server's fan-out)
+            for run in (lambda cb: c.batch(reqs, inflight=4, callback=cb),
+                        lambda cb: c.server_batch(reqs, callback=cb)):
+                order = []
+                results = run(lambda i, r: order.append(i))
+                self.assertEqual(sorted(order), list(range(len(reqs))))
+                self.check_same(results, seq)
+            self.assertGreater(c.ping(), 0)  # the connection is in step afterwards
+
+    def check_same(self, results, seq):
+        self.assertIsInstance(results[5], shapematch.StatusError)
+        self.assertEqual((results[5].name, results[5].detail), ("NOT_FOUND", 1))
+        self.assertTrue(results[6].stored)
+        for got, want in zip(results, seq):
+            if isinstance(want, shapematch.MatchResult):
+                self.assertEqual(map_text(got.map), map_text(want.map))
+                self.assertEqual((got.orientation, got.confidence, got.distance),
+                                 (want.orientation, want.confidence, want.distance))
+            elif isinstance(want, shapematch.DistanceResult):
+                self.assertEqual(got.total, want.total)
+                self.assertEqual(got.point_xy, want.point_xy)
+            else:
+                self.assertEqual(got.hits, want.hits)
+        self.assertGreater(len(seq), 4)
 
     def test_pipelined_for_real(self):
         """A PING sent after a MATCH in one batch is answered first (the server answers

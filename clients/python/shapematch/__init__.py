@@ -15,9 +15,9 @@ other classes of shapematch.errors.
 from .client import NUMPY, Client, parse_address
 from .errors import (ConnectFailed, ConnectionClosed, MeshError, OverLimit, ProtocolViolation,
                      ShapematchError, StatusError, Timeout)
-from .requests import (DistanceRequest, DistanceResult, DropRequest, HasRequest, HasResult,
-                       Hit, MatchRequest, MatchResult, PingRequest, PrepareRequest,
-                       PrepareResult, PutRequest, PutResult, QueryRequest, QueryResult,
-                       StatsRequest)
+from .requests import (BatchRequest, DistanceRequest, DistanceResult, DropRequest,
+                       HasRequest, HasResult, Hit, MatchRequest, MatchResult, PingRequest,
+                       PrepareRequest, PrepareResult, PutRequest, PutResult, QueryRequest,
+                       QueryResult, StatsRequest)
 
 __version__ = "0.1.0"

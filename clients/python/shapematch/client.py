@@ -27,9 +27,9 @@ import time
 from . import wire
 from .errors import (ConnectFailed, ConnectionClosed, OverLimit, ProtocolViolation,
                      StatusError, Timeout)
-from .requests import (DistanceRequest, DropRequest, HasRequest, HelloRequest, MatchRequest,
-                       PingRequest, PrepareRequest, PutRequest, QueryRequest, StatsRequest,
-                       shape_id)
+from .requests import (BatchRequest, DistanceRequest, DropRequest, HasRequest, HelloRequest,
+                       MatchRequest, PingRequest, PrepareRequest, PutRequest, QueryRequest,
+                       StatsRequest, shape_id)
 
 DEFAULT_PORT = 7878
 
@@ -337,28 +337,33 @@ class Client:
         except ProtocolViolation as e:
             self._fail(e)
 
-    def _call(self, req):
-        """Sends req and returns its decoded answer. Whatever leaves an answer owed (a
-        timeout, an interrupt) closes the connection, which also cancels the work."""
+    def _next_for(self, req, rid):
+        """The next frame answering request rid (side frames consumed); the wait is bounded
+        as the DESIGN says, from now (a BATCH: between two of its frames)."""
+        self._last_rx = time.monotonic()
+        limit = self.compute_timeout if req.compute else self.io_timeout
+        deadline = None if limit is None else time.monotonic() + limit
+        while True:
+            if req.compute:
+                h, body = self._recv_live(deadline)
+            else:
+                f = self._recv_frame(deadline)
+                if f is None:
+                    self._fail(Timeout("no %s answer within %g s" % (req.name(), limit)))
+                h, body = f
+            if self._side_frame(h, body):
+                continue
+            if h.request_id != rid:
+                self._fail(ProtocolViolation("answer for request %d while waiting for %d"
+                                             % (h.request_id, rid)))
+            return h, body
+
+    def _guarded(self, fn):
+        """Runs fn(); whatever leaves an answer owed (a timeout, an interrupt, a fatal
+        status) closes the connection, which also cancels the work server-side. A
+        request-level StatusError leaves it open."""
         try:
-            rid = self._send_request(req)
-            self._last_rx = time.monotonic()
-            limit = self.compute_timeout if req.compute else self.io_timeout
-            deadline = None if limit is None else time.monotonic() + limit
-            while True:
-                if req.compute:
-                    h, body = self._recv_live(deadline)
-                else:
-                    f = self._recv_frame(deadline)
-                    if f is None:
-                        self._fail(Timeout("no %s answer within %g s" % (req.name(), limit)))
-                    h, body = f
-                if self._side_frame(h, body):
-                    continue
-                if h.request_id != rid:
-                    self._fail(ProtocolViolation("answer for request %d while waiting for %d"
-                                                 % (h.request_id, rid)))
-                return self._answer(req, h, body)
+            return fn()
         except StatusError as e:
             if e.fatal:
                 self.close()
@@ -366,6 +371,14 @@ class Client:
         except BaseException:
             self.close()
             raise
+
+    def _call(self, req):
+        """Sends req and returns its decoded answer."""
+        def run():
+            rid = self._send_request(req)
+            h, body = self._next_for(req, rid)
+            return self._answer(req, h, body)
+        return self._guarded(run)
 
     # ---- operations ----
     def ping(self):
@@ -408,6 +421,54 @@ class Client:
     def query(self, shape, k=10, mode="default", candidates=None, deadline_ms=0):
         """The k stored shapes nearest to shape; a QueryResult."""
         return self._call(QueryRequest(shape, k, mode, candidates, deadline_ms))
+
+    def server_batch(self, requests, callback=None):
+        """One BATCH request (PROTOCOL.md 5.10): the server runs the items (PingRequest,
+        HasRequest, PrepareRequest, MatchRequest, DistanceRequest, QueryRequest) in parallel
+        on its worker pool and answers each as it completes; one request against
+        max_inflight and the job queue. Returns the results in request order, a failed item
+        holding its StatusError; callback(index, result) runs per item as it arrives. A
+        rejection of the whole batch (BUSY, LIMIT_EXCEEDED, ...) raises StatusError."""
+        batch = BatchRequest(list(requests), self)
+        results = [None] * len(batch.items)
+
+        def run():
+            rid = self._send_request(batch)
+            while True:
+                h, body = self._next_for(batch, rid)
+                if h.opcode != wire.BATCH:
+                    self._fail(ProtocolViolation("%s answer to a BATCH request"
+                                                 % wire.OP_NAMES.get(h.opcode, h.opcode)))
+                if not h.flags & wire.F_MORE:
+                    if h.status != wire.OK:
+                        raise self._status_error(h, body, "BATCH")
+                    n_items, n_ok = wire.dec_batch_end(body)
+                    missing = [i for i, r in enumerate(results) if r is None]
+                    if n_items != len(results) or missing:
+                        self._fail(ProtocolViolation("BATCH ended after %d of %d items"
+                                                     % (len(results) - len(missing),
+                                                        len(results))))
+                    return results
+                index, op, rest = wire.dec_batch_item(body)
+                if index >= len(results) or results[index] is not None or \
+                        op != batch.items[index].op:
+                    self._fail(ProtocolViolation("BATCH item answer %d (%s) does not match "
+                                                 "the request"
+                                                 % (index, wire.OP_NAMES.get(op, op))))
+                item = batch.items[index]
+                if h.status == wire.OK:
+                    try:
+                        results[index] = item.decode(self, rest)
+                    except ProtocolViolation as e:
+                        self._fail(e)
+                else:
+                    results[index] = self._status_error(h, rest, "BATCH item %d (%s)"
+                                                        % (index, item.name()))
+                    if results[index].fatal:
+                        raise results[index]
+                if callback is not None:
+                    callback(index, results[index])
+        return self._guarded(run)
 
     def batch(self, requests, inflight=4, busy_retries=-1, callback=None):
         """Runs many requests (PingRequest, PutRequest, HasRequest, PrepareRequest,

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from typing import Any, List, Optional
 
 from . import wire
-from .errors import MeshError, ProtocolViolation
+from .errors import MeshError, OverLimit, ProtocolViolation
 from .meshes import encode_arrays, encode_file
 
 
@@ -375,3 +375,26 @@ class QueryRequest(Request):
         if len(hits) > self.k:
             raise ProtocolViolation("QUERY answered %d hits for k = %d" % (len(hits), self.k))
         return QueryResult([Hit(_hex(i), d) for i, d in hits], considered, t_us * 1e-6)
+
+
+class BatchRequest(Request):
+    """The protocol's BATCH (section 5.10) of item requests; Client.server_batch sends it
+    and reads its item frames. The item payloads are taken once, here."""
+    op = wire.BATCH
+    compute = True
+
+    def __init__(self, items, ctx):
+        if not items:
+            raise ValueError("a BATCH needs at least one item")
+        for i, r in enumerate(items):
+            if r.op not in wire.BATCH_ITEM_OPS:
+                raise ValueError("BATCH item %d is a %s request; items are PING, HAS_SHAPE, "
+                                 "PREPARE, MATCH, DISTANCE or QUERY" % (i, r.name()))
+        limit = ctx.limits.max_batch_items
+        if limit and len(items) > limit:
+            raise OverLimit("BATCH of %d items; the server takes at most %d" % (len(items), limit))
+        self.items = items
+        self.body = wire.enc_batch([(r.op, r.payload(ctx)) for r in items])
+
+    def payload(self, ctx):
+        return self.body

@@ -294,6 +294,32 @@ def dec_match(version, body):
     return head, off_xy, off_yx, off_fmap, confidence
 
 
+BATCH_ITEM_OPS = (PING, HAS_SHAPE, PREPARE, MATCH, DISTANCE, QUERY)  # section 5.10
+
+
+def enc_batch(items):
+    """items: (opcode, payload) pairs, each payload its opcode's request layout."""
+    return struct.pack("<II", len(items), 0) + b"".join(
+        struct.pack("<BBHI", op, 0, 0, len(p)) + p for op, p in items)
+
+
+def dec_batch_item(body):
+    """An item frame of a BATCH answer: (index, opcode, the item's payload)."""
+    if len(body) < 8:
+        raise ProtocolViolation("BATCH item answer of %d bytes" % len(body))
+    index, op, _, _ = struct.unpack_from("<IBBH", body, 0)
+    return index, op, body[8:]
+
+
+def dec_batch_end(body):
+    """The final frame of a BATCH answer: (n_items, n_ok)."""
+    _exact(body, 8, "BATCH")
+    n_items, n_ok = struct.unpack("<II", body)
+    if n_ok > n_items:
+        raise ProtocolViolation("BATCH end: %d ok of %d items" % (n_ok, n_items))
+    return n_items, n_ok
+
+
 def dec_query(body):
     if len(body) < 16:
         raise ProtocolViolation("QUERY answer of %d bytes" % len(body))
