@@ -35,6 +35,7 @@
 #include "sm_metrics.h"
 #include "sm_client.h"
 #include "sm_version.h"
+#include "shapematch_picture.h"
 
 static int usage(FILE *f) {
   fprintf(f,
@@ -53,10 +54,17 @@ static int usage(FILE *f) {
           "  match A B [--basis elastic|lb|hybrid] [--init sinkhorn|nn] [-k K1] [--k0 K0]\n"
           "        [--step S] [--eta E] [--landmarks FILE] [--init-map FILE] [-o MAP.txt]\n"
           "        [--refine-sinkhorn LEVELS] [--yx MAP_BA.txt] [--fmap C.txt] [--multi-start]\n"
-          "        [--json]\n"
+          "        [--json] [--ply-out PREFIX] [--png-out FILE.png] [--view AZ,EL] [--size W,H]\n"
           "        dense point map from A to B: line i of MAP.txt = vertex of B (0-based, B's\n"
           "        numbering) matched to vertex i of A; -1 for vertices cleaning dropped.\n"
-          "        Landmarks: lines 'a b' of 0-based vertex pairs.\n"
+          "        Landmarks: lines 'a b' of 0-based vertex pairs. --ply-out writes\n"
+          "        PREFIX_src.ply (A coloured by position) and PREFIX_tgt.ply (B coloured\n"
+          "        through the map) with vertex colours; --png-out draws both side by side\n"
+          "        (turned by AZ degrees about the vertical, EL towards the viewer; default\n"
+          "        30,20; 960,480 pixels)\n"
+          "  render A B --map MAP.txt [-o OUT.png] [--ply-out PREFIX] [--view AZ,EL]\n"
+          "        [--size W,H]\n"
+          "        the same pictures of a map file that match wrote\n"
           "  distance A B [match options] [--json]\n"
           "        cosine shape distance in [0, 2] after matching both ways; prints the number\n"
           "  eval A B --map MAP.txt [--gt FILE] [--gt-kind dense|inverse|vts|pairs|identity]\n"
@@ -240,7 +248,7 @@ static int cmd_encode(int argc, char **argv) {
 }
 
 /* Reads lines of `ncol` integers; returns the count of rows, -1 on error (message printed). */
-static int read_index_rows(const char *path, int ncol, int32_t **out) {
+int read_index_rows(const char *path, int ncol, int32_t **out) {
   FILE *f = fopen(path, "r");
   if (!f) {
     perror(path);
@@ -288,6 +296,7 @@ static int write_map(const char *path, const int32_t *T, int32_t n) {
 typedef struct match_args {
   const char *a, *b, *out, *out_yx, *out_fmap, *landmarks, *init_map;
   int json;
+  const smcli_pic *pic; /* match only: pictures of the map */
   sm_shape_opts so;
   sm_match_opts mo;
   sm_client_match_opts co; /* the same options for the daemon: only what the user set */
@@ -887,6 +896,7 @@ static int remote_match(const char *addr, match_args *m) {
   if (!rc && m->out) rc = write_map(m->out, r.map_xy, (int32_t)r.nx);
   if (!rc && m->out_yx) rc = write_map(m->out_yx, r.map_yx, (int32_t)r.ny);
   if (!rc && m->out_fmap) rc = write_fmap(m->out_fmap, r.fmap, r.kC);
+  if (!rc) rc = smcli_pic_write(m->pic, m->a, m->b, r.map_xy, (int32_t)r.nx);
   if (!rc && m->json) {
     char hx[SM_CLIENT_ID_HEX_LEN + 1], hy[SM_CLIENT_ID_HEX_LEN + 1];
     sm_client_id_to_hex(x.id, hx);
@@ -1333,7 +1343,11 @@ static int cmd_match(int argc, char **argv) {
   match_args m;
   match_run mr;
   const char *addr;
-  if (take_server(&argc, argv, &addr) || parse_match_args(argc, argv, &m)) return usage(stderr);
+  smcli_pic pic;
+  if (take_server(&argc, argv, &addr) || smcli_pic_take_opts(&argc, argv, &pic) ||
+      parse_match_args(argc, argv, &m))
+    return usage(stderr);
+  m.pic = &pic;
   if (addr) return remote_match(addr, &m);
   m.mo.want_yx = m.out_yx != NULL;
   int rc = run_match(&m, &mr);
@@ -1342,6 +1356,7 @@ static int cmd_match(int argc, char **argv) {
     int32_t *map = malloc((size_t)x->mesh->n_input * sizeof *map);
     sm_match_to_input(x, y, mr.r.T, map);
     if (m.out) rc = write_map(m.out, map, x->mesh->n_input);
+    if (!rc) rc = smcli_pic_write(&pic, m.a, m.b, map, x->mesh->n_input);
     free(map);
     if (!rc && m.out_yx) {
       int32_t *back = malloc((size_t)y->mesh->n_input * sizeof *back);
@@ -1532,6 +1547,10 @@ int main(int argc, char **argv) {
   if (!strcmp(cmd, "match")) return cmd_match(argc - 2, argv + 2);
   if (!strcmp(cmd, "distance")) return cmd_distance(argc - 2, argv + 2);
   if (!strcmp(cmd, "eval")) return cmd_eval(argc - 2, argv + 2);
+  if (!strcmp(cmd, "render")) {
+    int rc = smcli_cmd_render(argc - 2, argv + 2);
+    return rc == 2 ? usage(stderr) : rc;
+  }
   if (!strcmp(cmd, "put") || !strcmp(cmd, "query") || !strcmp(cmd, "batch") ||
       !strcmp(cmd, "stats") || !strcmp(cmd, "ping")) {
     int n = argc - 2;
