@@ -16,11 +16,13 @@
  * Bases are computed once per shape (k = 100, the product's default) and cached in --cache
  * DIR. Pairs run on --threads worker threads (one pair per thread, one BLAS thread each).
  * Options of the match (default: the product's defaults): --multi-start, --global 1 (the
- * opt-in global search of sm_global.h; 2 adds orderings), --k1 K; --analyze prints every start of the global search
+ * opt-in global search of sm_global.h; 2 adds orderings), --k1 K, --extremities 0|1|2 (the
+ * tip search: off, when doubtful, always; "tips h/n" = winning hypothesis / refined); --analyze prints every start of the global search
  * with its true error instead of matching (design data, never used by the product).
  *
  * Usage: bench_hard [--sets a,b] [--cache DIR] [--threads N] [--json OUT] [--limit N]
  *                   [--global 0|1|2] [--multi-start] [--k1 K] [--analyze]
+ *                   [--extremities 0|1|2] [--ext-below C] [--ext-hypotheses H]
  * Exit: 0, 1 on a failure, 77 when ../shared/data is absent.
  */
 #define _POSIX_C_SOURCE 200809L
@@ -56,12 +58,13 @@ typedef struct hard_pair {
   int ok;
   char error[1200];
   double err_mean, err_max, confidence, orientation, continuity, cycle, t_init, t_refine, t_total;
-  int flipped, hypothesis;
+  int flipped, hypothesis, ext_tried, ext_hypothesis;
 } hard_pair;
 
 typedef struct bench_cfg {
   const char *cache;
-  int global, multi_start, k1, analyze;
+  int global, multi_start, k1, analyze, extremities, ext_h;
+  double ext_below;
 } bench_cfg;
 
 /* ---- shapes, with their bases cached on disk ----------------------------------------- */
@@ -163,6 +166,9 @@ static void stems(const hard_pair *p, char *sx, char *sy, size_t n) {
 static void match_options(const bench_cfg *c, sm_match_opts *o) {
   sm_match_opts_default(o);
   if (c->global >= 0) o->global = c->global;
+  if (c->extremities >= 0) o->extremities = c->extremities;
+  if (c->ext_below >= 0) o->ext_below = c->ext_below;
+  if (c->ext_h > 0) o->ext_hypotheses = c->ext_h;
   o->multi_start = c->multi_start;
   if (c->k1 > 0) o->k1 = c->k1;
   o->want_yx = 1;
@@ -266,6 +272,8 @@ static int run_pair(const bench_cfg *c, hard_pair *p, sm_error *err) {
     p->t_refine = r.t_refine;
     p->flipped = r.flipped;
     p->hypothesis = r.hypothesis;
+    p->ext_tried = r.ext_tried;
+    p->ext_hypothesis = r.ext_hypothesis;
   }
   free(map);
   free(e);
@@ -301,10 +309,10 @@ static void *worker(void *arg) {
     pthread_mutex_lock(&w->lock);
     if (p->ok)
       printf("%-9s %-28s err %.4f  max %.3f  conf %.3f  orient %+.2f cont %.3f cyc %.3f  hyp %2d%s  "
-             "init %.2f s  refine %.2f s  total %.2f s\n",
+             "tips %d/%d  init %.2f s  refine %.2f s  total %.2f s\n",
              p->set, p->name, p->err_mean, p->err_max, p->confidence, p->orientation,
-             p->continuity, p->cycle,
-             p->hypothesis, p->flipped ? " flip" : "", p->t_init, p->t_refine, p->t_total);
+             p->continuity, p->cycle, p->hypothesis, p->flipped ? " flip" : "",
+             p->ext_hypothesis, p->ext_tried, p->t_init, p->t_refine, p->t_total);
     else
       printf("%-9s %-28s FAILED: %s\n", p->set, p->name, p->error);
     fflush(stdout);
@@ -381,7 +389,7 @@ static void write_json(const char *path, const bench_cfg *c, const hard_pair *P,
   char load[128];
   load_string(load, sizeof load);
   fprintf(f, "{\"bench\": \"bench_hard\", \"global\": %d, \"multi_start\": %d, \"k1\": %d, "
-          "\"loadavg\": ", c->global, c->multi_start, c->k1);
+          "\"extremities\": %d, \"loadavg\": ", c->global, c->multi_start, c->k1, c->extremities);
   jstr(f, load);
   fprintf(f, ",\n \"pairs\": [\n");
   for (int i = 0; i < n; i++) {
@@ -395,6 +403,7 @@ static void write_json(const char *path, const bench_cfg *c, const hard_pair *P,
       jnum(f, "continuity", p->continuity, 1);
       jnum(f, "cycle", p->cycle, 1);
       fprintf(f, "\"hypothesis\": %d, \"flipped\": %d, ", p->hypothesis, p->flipped);
+      fprintf(f, "\"ext_tried\": %d, \"ext_hypothesis\": %d, ", p->ext_tried, p->ext_hypothesis);
       jnum(f, "t_init", p->t_init, 1);
       jnum(f, "t_refine", p->t_refine, 1);
       jnum(f, "t_total", p->t_total, 0);
@@ -428,11 +437,13 @@ static void write_json(const char *path, const bench_cfg *c, const hard_pair *P,
 static void usage(void) {
   fprintf(stderr, "usage: bench_hard [--sets gorilla,manwoman,within,classic] [--cache DIR] "
                   "[--threads N] [--json OUT] [--limit N] [--global 0|1] [--multi-start] "
-                  "[--k1 K] [--analyze]\n");
+                  "[--k1 K] [--analyze] [--extremities 0|1|2] [--ext-below C] "
+                  "[--ext-hypotheses H]\n");
 }
 
 int main(int argc, char **argv) {
-  bench_cfg cfg = {.cache = "bench-cache", .global = -1};
+  bench_cfg cfg = {.cache = "bench-cache", .global = -1, .extremities = -1,
+                   .ext_below = -1};
   const char *sets_arg = NULL, *json = NULL;
   int threads = 2, limit = 0;
   for (int i = 1; i < argc; i++) {
@@ -445,6 +456,9 @@ int main(int argc, char **argv) {
     else if (!strcmp(a, "--limit") && v) limit = atoi(argv[++i]);
     else if (!strcmp(a, "--global") && v) cfg.global = atoi(argv[++i]);
     else if (!strcmp(a, "--k1") && v) cfg.k1 = atoi(argv[++i]);
+    else if (!strcmp(a, "--extremities") && v) cfg.extremities = atoi(argv[++i]);
+    else if (!strcmp(a, "--ext-below") && v) cfg.ext_below = atof(argv[++i]);
+    else if (!strcmp(a, "--ext-hypotheses") && v) cfg.ext_h = atoi(argv[++i]);
     else if (!strcmp(a, "--multi-start")) cfg.multi_start = 1;
     else if (!strcmp(a, "--analyze")) cfg.analyze = 1;
     else {

@@ -111,4 +111,5 @@ int sm_shape_distance(const sm_shape *x, const sm_shape *y, const int32_t *T_xy,
 void sm_distance_match_opts(sm_match_opts *o) {
   o->want_yx = 1;
   o->orientation_fix = 0;
+  o->extremities = SM_EXT_OFF;
 }

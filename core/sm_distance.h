@@ -36,8 +36,9 @@ typedef struct sm_distance_parts {
 int sm_shape_distance(const sm_shape *x, const sm_shape *y, const int32_t *T_xy,
                       const int32_t *T_yx, sm_distance_parts *out, sm_error *err);
 
-/* Adjusts matching options for a distance: both maps (want_yx), and no mirror check
- * (orientation_fix = 0). The check reruns the refinement from the map composed with the
+/* Adjusts matching options for a distance: both maps (want_yx), no tip search (it fires
+ * on the low-confidence maps of pairs of different classes, at one match per hypothesis),
+ * and no mirror check (orientation_fix = 0). The check reruns the refinement from the map composed with the
  * target's self-symmetry when the map looks mirrored: up to a second match, and it fires
  * mostly on pairs of different classes, whose maps are poor either way. Measured on
  * tosca pairs (k = 50): within-class distances unchanged; cross-class ones moved by -13%

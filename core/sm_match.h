@@ -17,6 +17,14 @@
  *     coarse map and the sign starts of the low LB functions are each refined on samples
  *     and the winner of an intrinsic energy becomes the initial map. Off because, measured
  *     with bench_hard, it did not beat the single start on average (docs/RESULTS.md 6).
+ *   tip search (default: when the map's confidence is below ext_below; sm_extremity.h):
+ *     the tips of both shapes (head, hands, feet, tail) are found from the average geodesic
+ *     distance; each of the ext_hypotheses cheapest tip assignments becomes the landmarks
+ *     of a full match, and the most continuous of those maps and the first one is kept.
+ *     The descriptor start is right on near-isometric pairs and wrong, with a low
+ *     confidence, between species (gorilla -> human); the tips put such a pair in the
+ *     right basin. Costs one match per hypothesis, so only doubtful maps pay for it;
+ *     SM_EXT_ALWAYS also searches confident ones (exhaustive mode), SM_EXT_OFF never.
  *   confidence (every result; sm_confidence.h): max(0, orientation) x continuity x cycle
  *     consistency of the final maps, in [0, 1], from the shapes and maps alone.
  *
@@ -42,6 +50,9 @@
 
 enum sm_match_basis { SM_MATCH_LB = 1, SM_MATCH_ELASTIC = 2, SM_MATCH_HYBRID = 3 };
 enum sm_match_init { SM_INIT_NN = 1, SM_INIT_SINKHORN = 2 };
+enum sm_match_ext { SM_EXT_OFF = 0, SM_EXT_WHEN_DOUBTFUL = 1, SM_EXT_ALWAYS = 2 };
+#define SM_MATCH_EXT_BELOW 0.3 /* see "tip search" above */
+#define SM_MATCH_EXT_MAX_H 12
 
 typedef struct sm_shape_opts {
   int k_lb;        /* LB functions (descriptors, coarse map, lb/hybrid refinement) */
@@ -87,6 +98,10 @@ typedef struct sm_match_opts {
   int orientation_fix; /* try the other orientation when the result looks mirrored */
   int multi_start;  /* also refine from the other init, keep the smoother map (see below) */
   int global;       /* 1: global hypothesis search (see above); 2: also orderings */
+  int extremities;  /* tip search (see above): 0 off, 1 when the map's confidence is below
+                       ext_below (default), 2 always */
+  double ext_below; /* default SM_MATCH_EXT_BELOW */
+  int ext_hypotheses; /* tip assignments refined, at most SM_MATCH_EXT_MAX_H (default 6) */
   const int32_t *landmarks; /* nlandmarks pairs (x, y), cleaned indices; may be NULL */
   int nlandmarks;
   const int32_t *init_map;  /* optional initial map X -> Y (cleaned indices): skips init */
@@ -109,7 +124,11 @@ typedef struct sm_match_result {
   double confidence;        /* in [0, 1]: how far T can be trusted (sm_confidence.h): */
   double continuity, cycle; /* its factors besides the orientation */
   int hypothesis;           /* index of the global search's winning start (0 = descriptors) */
-  double t_init, t_refine;  /* seconds */
+  int ext_tried;            /* tip hypotheses refined (0: the tip search did not run) */
+  int ext_hypothesis;       /* 0: the descriptor start's map was kept; h >= 1: the map
+                               started from the h-th cheapest tip assignment won */
+  double t_init, t_refine;  /* seconds; t_init includes the tip search, t_refine is the
+                               winning map's refinement */
 } sm_match_result;
 
 void sm_match_opts_default(sm_match_opts *o);

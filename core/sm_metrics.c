@@ -508,25 +508,59 @@ static void ws_reset(dijk_ws *w) {
   w->ntouched = 0;
 }
 
+struct sm_edge_paths {
+  edge_graph g;
+  dijk_ws w;
+  int32_t stamp;
+};
+
+int sm_edge_paths_create(const sm_mesh *m, sm_edge_paths **out, sm_error *err) {
+  *out = NULL;
+  if (!m) return sm_error_set(err, SM_EINVAL, "sm_edge_paths_create: null mesh");
+  int rc = check_faces(m, "mesh", err);
+  if (rc) return rc;
+  sm_edge_paths *p = calloc(1, sizeof *p);
+  if (!p) return sm_error_set(err, SM_ENOMEM, "out of memory for Dijkstra (%d vertices)", m->nv);
+  if ((rc = graph_build(m, &p->g, err))) {
+    free(p);
+    return rc;
+  }
+  if (ws_init(&p->w, &p->g)) {
+    graph_free(&p->g);
+    free(p);
+    return sm_error_set(err, SM_ENOMEM, "out of memory for Dijkstra (%d vertices)", m->nv);
+  }
+  *out = p;
+  return SM_OK;
+}
+
+int sm_edge_paths_run(sm_edge_paths *p, int32_t source, double *dist, sm_error *err) {
+  if (source < 0 || source >= p->g.nv)
+    return sm_error_set(err, SM_ERANGE, "source vertex %d out of range (mesh has %d vertices)",
+                        source, p->g.nv);
+  dijkstra_run(&p->w, &p->g, source, ++p->stamp, INT64_MAX);
+  memcpy(dist, p->w.dist, (size_t)p->g.nv * sizeof *dist);
+  ws_reset(&p->w);
+  return SM_OK;
+}
+
+void sm_edge_paths_destroy(sm_edge_paths *p) {
+  if (!p) return;
+  ws_free(&p->w);
+  graph_free(&p->g);
+  free(p);
+}
+
 int sm_mesh_edge_dijkstra(const sm_mesh *m, int32_t source, double *dist, sm_error *err) {
   if (!m || !dist) return sm_error_set(err, SM_EINVAL, "sm_mesh_edge_dijkstra: null argument");
   if (source < 0 || source >= m->nv)
     return sm_error_set(err, SM_ERANGE, "source vertex %d out of range (mesh has %d vertices)",
                         source, m->nv);
-  int rc = check_faces(m, "mesh", err);
-  if (rc) return rc;
-  edge_graph g;
-  if ((rc = graph_build(m, &g, err))) return rc;
-  dijk_ws w;
-  if (ws_init(&w, &g)) {
-    graph_free(&g);
-    return sm_error_set(err, SM_ENOMEM, "out of memory for Dijkstra (%d vertices)", m->nv);
-  }
-  dijkstra_run(&w, &g, source, 1, INT64_MAX);
-  memcpy(dist, w.dist, (size_t)m->nv * sizeof *dist);
-  ws_free(&w);
-  graph_free(&g);
-  return SM_OK;
+  sm_edge_paths *p;
+  int rc = sm_edge_paths_create(m, &p, err);
+  if (!rc) rc = sm_edge_paths_run(p, source, dist, err);
+  sm_edge_paths_destroy(p);
+  return rc;
 }
 
 /* ---- grouped, threaded geodesic errors ---- */

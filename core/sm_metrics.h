@@ -104,6 +104,14 @@ int sm_map_save(const char *path, const int32_t *map, int32_t n_source, sm_error
  * dist[m->nv], +inf where unreachable. m must have valid face indices (SM_ERANGE). */
 int sm_mesh_edge_dijkstra(const sm_mesh *m, int32_t source, double *dist, sm_error *err);
 
+/* The same searches from many sources on one mesh: the edge graph and the workspace are
+ * built once (sm_edge_paths_create copies what it needs; m may go afterwards). A handle
+ * is used by one thread at a time. run: dist[nv] from source, +inf where unreachable. */
+typedef struct sm_edge_paths sm_edge_paths;
+int sm_edge_paths_create(const sm_mesh *m, sm_edge_paths **out, sm_error *err);
+int sm_edge_paths_run(sm_edge_paths *p, int32_t source, double *dist, sm_error *err);
+void sm_edge_paths_destroy(sm_edge_paths *p);
+
 /* e[gt->n]: the geodesic errors defined above, on `target`, for a map of length n_source.
  * One Dijkstra per distinct GT target vertex (or per distinct mapped vertex when those are
  * fewer: distances are symmetric), stopped as soon as every vertex it must measure is
