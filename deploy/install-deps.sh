@@ -18,6 +18,7 @@ PKGS=(
   clang libclang-rt-dev    # fuzz harnesses: libFuzzer + ASan/UBSan (tests/fuzz/run.sh)
   afl++                    # the same harnesses under AFL++ (tests/fuzz/README.md)
   haproxy stunnel4 openssl # the TLS front of deploy/tls, checked by deploy/tls/check.sh
+  man-db                   # test_manpages renders the man pages with man --warnings
 )
 
 missing=()

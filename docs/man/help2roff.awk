@@ -41,11 +41,12 @@ FNR == NR { tmpl[++nt] = $0; next }          # first file: the template
 { help[++nh] = $0 }
 
 # The .TP tag of an item that opens with a flag: the flag, then its upper-case value
-# names (--config FILE, --token TOKEN); the rest of the line starts the body.
+# names (--config FILE, --token TOKEN); the rest of the line starts the body. Nothing is
+# dropped: the page must say all the help says (tests/install/test_manpages.sh).
 function flag_tag(s,    n, w, i, tag) {
   n = split(s, w, " ")
   tag = w[1]
-  if (tag ~ /:$/) { sub(/:$/, "", tag); i = 2 }
+  if (tag ~ /:$/) i = 2                        # "--flag: text": the flag alone
   else for (i = 2; i <= n && w[i] ~ /^[A-Z]+$/; i++) tag = tag " " w[i]
   rest = ""
   for (; i <= n; i++) rest = rest (rest == "" ? "" : " ") w[i]
