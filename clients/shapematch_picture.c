@@ -57,9 +57,9 @@ static int write_outputs(const smcli_pic *p, const sm_mesh *ma, const sm_mesh *m
     if (sm_pic_write_ply(src, ma, ca, &err) || sm_pic_write_ply(tgt, mb, cb, &err))
       rc = pic_fail("picture", &err);
     else
-      fprintf(stderr, "wrote %s and %s (%d of %d target vertices reached by the map; the "
-              "others take their nearest reached neighbour's colour)\n", src, tgt, reached,
-              mb->nv);
+      fprintf(stderr, "wrote %s and %s (%d of %d target vertices reached by the map%s)\n",
+              src, tgt, reached, mb->nv, reached < mb->nv ? "; the others take their "
+              "nearest reached neighbour's colour" : "");
     free(src);
     free(tgt);
   }
