@@ -54,6 +54,7 @@ static int usage(FILE *f) {
           "  match A B [--basis elastic|lb|hybrid] [--init sinkhorn|nn] [-k K1] [--k0 K0]\n"
           "        [--step S] [--eta E] [--landmarks FILE] [--init-map FILE] [-o MAP.txt]\n"
           "        [--refine-sinkhorn LEVELS] [--yx MAP_BA.txt] [--fmap C.txt] [--multi-start]\n"
+          "        [--tips off|doubtful|always]\n"
           "        [--json] [--ply-out PREFIX] [--png-out FILE.png] [--view AZ,EL] [--size W,H]\n"
           "        dense point map from A to B: line i of MAP.txt = vertex of B (0-based, B's\n"
           "        numbering) matched to vertex i of A; -1 for vertices cleaning dropped.\n"
@@ -61,7 +62,10 @@ static int usage(FILE *f) {
           "        PREFIX_src.ply (A coloured by position) and PREFIX_tgt.ply (B coloured\n"
           "        through the map) with vertex colours; --png-out draws both side by side\n"
           "        (turned by AZ degrees about the vertical, EL towards the viewer; default\n"
-          "        30,20; 960,480 pixels)\n"
+          "        30,20; 960,480 pixels). --tips (local matching; the daemon uses\n"
+          "        doubtful): the tip search, a landmark-free global start from the shapes'\n"
+          "        tips (head, hands, feet), run when the map's confidence is doubtful\n"
+          "        (below 0.45, the default), always (slower), or off\n"
           "  render A B --map MAP.txt [-o OUT.png] [--ply-out PREFIX] [--view AZ,EL]\n"
           "        [--size W,H]\n"
           "        the same pictures of a map file that match wrote\n"
@@ -317,7 +321,7 @@ static int parse_match_opt(int argc, char **argv, int *i, match_args *m) {
   if (!strcmp(a, "--multi-start")) { m->mo.multi_start = m->co.multi_start = 1; return 1; }
   static const char *const valued[] = {"--basis", "--init", "-k", "--k0", "--step",
                                        "--refine-sinkhorn", "--eta", "--landmarks",
-                                       "--init-map", "-o", "--yx", "--fmap", NULL};
+                                       "--init-map", "-o", "--yx", "--fmap", "--tips", NULL};
   int known = 0;
   for (int j = 0; valued[j]; j++) known |= !strcmp(a, valued[j]);
   if (!known) return 0;
@@ -342,6 +346,11 @@ static int parse_match_opt(int argc, char **argv, int *i, match_args *m) {
   else if (!strcmp(a, "-o")) m->out = v;
   else if (!strcmp(a, "--yx")) m->out_yx = v;
   else if (!strcmp(a, "--fmap")) m->out_fmap = v;
+  else if (!strcmp(a, "--tips")) {
+    m->mo.extremities = !strcmp(v, "off") ? SM_EXT_OFF : !strcmp(v, "doubtful")
+                        ? SM_EXT_WHEN_DOUBTFUL : !strcmp(v, "always") ? SM_EXT_ALWAYS : -1;
+    if (m->mo.extremities < 0) return -1;
+  }
   return 1;
 }
 
@@ -451,14 +460,15 @@ static void print_match_json(const match_args *m, const sm_shape *x, const sm_sh
   printf("{\"source\":\"%s\",\"target\":\"%s\",\"n_source\":%d,\"n_target\":%d,"
          "\"basis\":\"%s\",\"init\":\"%s\",\"k0\":%d,\"k1\":%d,\"step\":%d,"
          "\"orientation\":%.6f,\"confidence\":%s,\"flipped\":%d,\"init_distinct\":%.6f,"
-         "\"start_used\":\"%s\",\"dirichlet\":%.6f,"
+         "\"start_used\":\"%s\",\"dirichlet\":%.6f,\"tips\":{\"tried\":%d,\"kept\":%d},"
          "\"time\":{\"basis\":%.4f,\"init\":%.4f,\"refine\":%.4f,\"total\":%.4f},"
          "\"map\":\"%s\"}\n",
          m->a, m->b, x->mesh->n_input, y->mesh->n_input,
          m->mo.basis == SM_MATCH_LB ? "lb" : m->mo.basis == SM_MATCH_ELASTIC ? "elastic" : "hybrid",
          m->mo.init == SM_INIT_NN ? "nn" : "sinkhorn", m->mo.k0, m->mo.k1, m->mo.step,
          r->orientation, conf, r->flipped, r->init_distinct,
-         r->init_used == SM_INIT_NN ? "nn" : "sinkhorn", r->dirichlet,
+         r->init_used == SM_INIT_NN ? "nn" : "sinkhorn", r->dirichlet, r->ext_tried,
+         r->ext_hypothesis,
          x->t_clean + x->t_lb + x->t_elastic + x->t_desc + y->t_clean + y->t_lb + y->t_elastic + y->t_desc,
          r->t_init, r->t_refine, t_total, m->out ? m->out : "");
 }
@@ -908,7 +918,7 @@ static int remote_match(const char *addr, match_args *m) {
     printf("{\"source\":\"%s\",\"target\":\"%s\",\"n_source\":%u,\"n_target\":%u,"
            "\"basis\":\"%s\",\"init\":\"%s\",\"k0\":%d,\"k1\":%d,\"step\":%d,"
            "\"orientation\":%.6f,\"confidence\":%s,\"flipped\":%d,\"init_distinct\":null,"
-           "\"start_used\":\"%s\",\"dirichlet\":%.6f,"
+           "\"start_used\":\"%s\",\"dirichlet\":%.6f,\"tips\":null,"
            "\"time\":{\"basis\":%.4f,\"init\":%.4f,\"refine\":%.4f,\"total\":%.4f},"
            "\"map\":\"%s\",\"server\":true,\"source_id\":\"%s\",\"target_id\":\"%s\"}\n",
            m->a, m->b, r.nx, y.nv, basis_name(m->mo.basis),
