@@ -367,6 +367,9 @@ int main(int argc, char **argv) {
          port, s.cfg.bind, s.cfg.threads, (unsigned long long)(s.cfg.cache_bytes >> 20),
          s.cfg.max_payload, mport, s.cfg.has_token, s.cfg.default_k,
          (unsigned long long)(s.cfg.buffer_budget >> 20));
+  /* Type=notify: systemd starts dependent units (the HAProxy front) only once the store is
+   * open and the port listens. */
+  sm_srv_notify("READY=1");
 
   int rc = sm_srv_run(&s, lfd, mfd);
   if (rc) {

@@ -4,6 +4,9 @@
 #include <stdio.h>
 #include <string.h>
 #include <time.h>
+#ifdef SM_HAVE_SYSTEMD
+#include <systemd/sd-daemon.h>
+#endif
 
 void sm_log(const char *level, const char *msg, const char *fmt, ...) {
   char line[2048];
@@ -49,6 +52,14 @@ const char *sm_log_q(const char *s, char *buf, unsigned n) {
   if (quote) buf[o++] = '"';
   buf[o] = 0;
   return buf;
+}
+
+void sm_srv_notify(const char *state) {
+#ifdef SM_HAVE_SYSTEMD
+  sd_notify(0, state);
+#else
+  (void)state;
+#endif
 }
 
 void sm_hex(const unsigned char *p, unsigned n, char *out) {

@@ -143,6 +143,7 @@ static void start_drain(sm_server *s, int lfd, int mfd) {
     }
   sm_log("info", "shutdown requested, draining", " connections=%d drain_ms=%u", n,
          s->cfg.drain_ms);
+  sm_srv_notify("STOPPING=1");
   for (sm_conn *c = s->conns, *nx; c; c = nx) {
     nx = c->next;
     if (c->fd >= 0) sm_conn_on_writable(s, c);
