@@ -18,6 +18,8 @@ PKGS=(
   clang libclang-rt-dev    # fuzz harnesses: libFuzzer + ASan/UBSan (tests/fuzz/run.sh)
   afl++                    # the same harnesses under AFL++ (tests/fuzz/README.md)
   haproxy stunnel4 openssl # the TLS front of deploy/tls, checked by deploy/tls/check.sh
+  libsystemd-dev           # sd_notify (Type=notify, deploy/systemd); optional at build time
+  python3-yaml             # deploy/check-files.sh reads the Kubernetes manifests
   man-db                   # test_manpages renders the man pages with man --warnings
 )
 
