@@ -367,16 +367,19 @@ int main(int argc, char **argv) {
        0.044, NULL},
       {"man-woman", "smpl_man_woman_odedstein/human_man.obj",
        "smpl_man_woman_odedstein/human_woman.obj", NULL, 0.005, NULL},
-      /* Dev pairs of tosca_nonisometric_dev (bench_hard, default pipeline): two man -> woman
-       * pairs the pipeline gets right (0.0428, 0.0406) and a gorilla -> human pair it gets
-       * wrong today (0.634): the bound only guards against worse, the confidence check in
-       * real_pair_case requires the failure to be flagged. */
+      /* Dev pairs of tosca_nonisometric_dev (bench_hard, default pipeline, +20%): two man ->
+       * woman pairs the descriptor start gets right (0.0428 -> 0.0379 after the tip search,
+       * 0.0336 without it), and a gorilla -> human pair the descriptor start gets wrong
+       * (0.634) that the tip search brings to 0.190 (the field's failure line is 0.1). Not
+       * here: a pair whose first confidence sits near the search's 0.45 threshold (man 04
+       * -> woman 03: 0.405 in bench_hard, 0.451 with this test's preparation), where the
+       * outcome flips between 0.04 and 0.16. */
       {"man03-woman03", TND "meshes/8_man_03.off.gz", TND "meshes/8_woman_03.off.gz",
-       TND "corres/8_man_03.vts", 0.052, TND "corres/8_woman_03.vts"},
+       TND "corres/8_man_03.vts", 0.046, TND "corres/8_woman_03.vts"},
       {"man07-woman12", TND "meshes/8_man_07.off.gz", TND "meshes/8_woman_12.off.gz",
-       TND "corres/8_man_07.vts", 0.049, TND "corres/8_woman_12.vts"},
+       TND "corres/8_man_07.vts", 0.041, TND "corres/8_woman_12.vts"},
       {"gorilla03-man03", TND "meshes/8_gorilla_03.off.gz", TND "meshes/8_man_03.off.gz",
-       TND "corres/8_gorilla_03.vts", 0.70, TND "corres/8_man_03.vts"},
+       TND "corres/8_gorilla_03.vts", 0.23, TND "corres/8_man_03.vts"},
   };
   /* The sanitizer pass sets SM_TEST_SYNTHETIC_ONLY: the real pairs are numerics already
    * covered by the optimized pass, and ten times slower under ASan. */

@@ -232,7 +232,8 @@ HARD_SETS = [("gorilla", "gorilla -> human (tosca_nonisometric_dev, 45)"),
 
 def section_hard(out, md):
     md.append("## 6. Hard pairs, no landmarks, and the confidence of each map\n")
-    runs = [("default", load(out, "hard_pairs.json")),
+    runs = [("default (tip search when doubtful)", load(out, "hard_pairs.json")),
+            ("tip search off (--extremities 0)", load(out, "hard_pairs_notips.json")),
             ("global search (opt-in)", load(out, "hard_pairs_global.json"))]
     runs = [(n, r) for n, r in runs if r]
     if not runs:
@@ -257,13 +258,17 @@ def section_hard(out, md):
         md.append(f"- {name}: confidence AUROC {fmt(a['value'], 3)} ({a['good']} good maps, "
                   f"{a['failed']} failed).")
     md.append("\nPer pair (default run): error, confidence (= max(0, orientation) x continuity "
-              "x cycle), its factors, time.\n")
+              "x cycle), its factors, the tip search (hypothesis kept / hypotheses refined; "
+              "0 = the descriptor start's map kept, 0/0 = not run: the first map was not "
+              "doubtful), time.\n")
     base = runs[0][1]
     prow = [[p["set"], p["pair"], p.get("err_mean"), p.get("confidence"), p.get("orientation"),
-             p.get("continuity"), p.get("cycle"), fmt(p.get("t_total"), 2) + " s"]
+             p.get("continuity"), p.get("cycle"),
+             f"{p.get('ext_hypothesis', 0)}/{p.get('ext_tried', 0)}",
+             fmt(p.get("t_total"), 2) + " s"]
             for p in base["pairs"] if p.get("ok")]
     md.append(table(["set", "pair", "error", "confidence", "orientation", "continuity", "cycle",
-                     "time"], prow))
+                     "tips", "time"], prow))
 
 
 def write(out, path):
