@@ -102,7 +102,7 @@ typedef struct sm_match_opts {
   int extremities;  /* tip search (see above): 0 off, 1 when the map's confidence is below
                        ext_below (default), 2 always */
   double ext_below; /* default SM_MATCH_EXT_BELOW */
-  int ext_hypotheses; /* tip assignments refined, at most SM_MATCH_EXT_MAX_H (default 6) */
+  int ext_hypotheses; /* tip assignments refined, at most SM_MATCH_EXT_MAX_H (default 4) */
   const int32_t *landmarks; /* nlandmarks pairs (x, y), cleaned indices; may be NULL */
   int nlandmarks;
   const int32_t *init_map;  /* optional initial map X -> Y (cleaned indices): skips init */
