@@ -46,6 +46,13 @@ int sm_deform_noise(const sm_mesh *in, double sigma_rel, uint64_t seed, sm_mesh 
 /* 4 <= target_nv; a mesh already at or below it is copied. */
 int sm_mesh_decimate(const sm_mesh *in, int32_t target_nv, sm_mesh **out, sm_error *err);
 
+/* As sm_mesh_decimate, but faces OpenMesh refuses (they would make an edge or a vertex
+ * non-manifold) are left out of the decimated surface instead of failing the call;
+ * *skipped (may be NULL) gets their number. For a coarse proxy of a non-manifold scan
+ * (sm_multires.h), where a few missing faces only shift the proxy locally. */
+int sm_mesh_decimate_lenient(const sm_mesh *in, int32_t target_nv, sm_mesh **out,
+                             int32_t *skipped, sm_error *err);
+
 /* Principal axis (unit vector, sign fixed so its largest component is positive) of the
  * vertices; used by stretch and exposed for tests. */
 int sm_principal_axis(const sm_mesh *m, double axis[3], sm_error *err);

@@ -3,13 +3,15 @@
  * DESIGN
  *   The mesh is copied into an OpenMesh TriMesh with double coordinates; a face OpenMesh
  *   refuses (a complex edge or vertex) makes the whole call fail with SM_EFORMAT rather
- *   than decimate a silently different surface. Collapses are ordered by the quadric error
+ *   than decimate a silently different surface (sm_mesh_decimate_lenient leaves such faces
+ *   out instead and counts them: for a coarse proxy of a non-manifold scan). Collapses are ordered by the quadric error
  *   (ModQuadric, no error bound) and vetoed when they flip a face normal by more than
  *   60 degrees (ModNormalFlipping), which keeps the decimated surface free of fold-overs.
  *   After garbage collection the vertices are renumbered 0..n-1 in OpenMesh's order.
  */
 #include <cstdint>
 #include <exception>
+#include <mutex>
 #include <new>
 #include <vector>
 
@@ -33,7 +35,8 @@ struct DoubleTraits : OpenMesh::DefaultTraits {
 };
 typedef OpenMesh::TriMesh_ArrayKernelT<DoubleTraits> OmTri;
 
-int build(const sm_mesh *in, OmTri &om, sm_error *err) {
+/* skipped == NULL: a refused face fails the call; otherwise it is left out and counted. */
+int build(const sm_mesh *in, OmTri &om, int32_t *skipped, sm_error *err) {
   std::vector<OmTri::VertexHandle> vh((size_t)in->nv);
   for (int32_t v = 0; v < in->nv; v++) {
     const double *p = in->V + 3 * (size_t)v;
@@ -45,8 +48,12 @@ int build(const sm_mesh *in, OmTri &om, sm_error *err) {
       if (t[c] < 0 || t[c] >= in->nv)
         return sm_error_set(err, SM_ERANGE, "decimate: face %d references vertex %d of %d", f,
                             t[c], in->nv);
-    if (!om.add_face(vh[(size_t)t[0]], vh[(size_t)t[1]], vh[(size_t)t[2]]).is_valid())
-      return sm_error_set(err, SM_EFORMAT,
+    if (om.add_face(vh[(size_t)t[0]], vh[(size_t)t[1]], vh[(size_t)t[2]]).is_valid()) continue;
+    if (skipped) {
+      (*skipped)++;
+      continue;
+    }
+    return sm_error_set(err, SM_EFORMAT,
                           "decimate: face %d is non-manifold here; clean the mesh first", f);
   }
   return SM_OK;
@@ -66,9 +73,25 @@ int extract(OmTri &om, sm_mesh **out, sm_error *err) {
   return SM_OK;
 }
 
-int decimate_impl(const sm_mesh *in, int32_t target_nv, sm_mesh **out, sm_error *err) {
+/* OpenMesh reports every refused face on its global error stream; the lenient build
+ * expects thousands of them (the dragon: 1,900) and core does not log, so the stream is
+ * muted while it runs. The stream is process-wide: the mutex keeps concurrent lenient
+ * builds from re-enabling it under each other. */
+std::mutex g_omerr_lock;
+
+int decimate_impl(const sm_mesh *in, int32_t target_nv, int32_t *skipped, sm_mesh **out,
+                  sm_error *err) {
   OmTri om;
-  int rc = build(in, om, err);
+  int rc;
+  if (skipped) {
+    std::lock_guard<std::mutex> guard(g_omerr_lock);
+    bool was = omerr().is_enabled();
+    omerr().disable();
+    rc = build(in, om, skipped, err);
+    if (was) omerr().enable();
+  } else {
+    rc = build(in, om, skipped, err);
+  }
   if (rc) return rc;
   om.update_face_normals();
   OpenMesh::Decimater::DecimaterT<OmTri> dec(om);
@@ -85,14 +108,14 @@ int decimate_impl(const sm_mesh *in, int32_t target_nv, sm_mesh **out, sm_error 
 
 }  // namespace
 
-extern "C" int sm_mesh_decimate(const sm_mesh *in, int32_t target_nv, sm_mesh **out,
-                                sm_error *err) {
+static int decimate_entry(const sm_mesh *in, int32_t target_nv, int32_t *skipped,
+                          sm_mesh **out, sm_error *err) {
   if (!in || !out || target_nv < 4)
     return sm_error_set(err, SM_EINVAL, "decimate: target of %d vertices (need >= 4)", target_nv);
   *out = NULL;
   if (in->nv <= target_nv) return sm_mesh_copy(in, out, err);
   try {
-    int rc = decimate_impl(in, target_nv, out, err);
+    int rc = decimate_impl(in, target_nv, skipped, out, err);
     if (rc && *out) {
       sm_mesh_destroy(*out);
       *out = NULL;
@@ -103,4 +126,17 @@ extern "C" int sm_mesh_decimate(const sm_mesh *in, int32_t target_nv, sm_mesh **
   } catch (const std::exception &e) {
     return sm_error_set(err, SM_EFORMAT, "decimate: %s", e.what());
   }
+}
+
+extern "C" int sm_mesh_decimate(const sm_mesh *in, int32_t target_nv, sm_mesh **out,
+                                sm_error *err) {
+  return decimate_entry(in, target_nv, NULL, out, err);
+}
+
+extern "C" int sm_mesh_decimate_lenient(const sm_mesh *in, int32_t target_nv, sm_mesh **out,
+                                        int32_t *skipped, sm_error *err) {
+  int32_t n = 0;
+  int rc = decimate_entry(in, target_nv, &n, out, err);
+  if (skipped) *skipped = n;
+  return rc;
 }

