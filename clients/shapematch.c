@@ -31,6 +31,7 @@
 #include "sm_shell.h"
 #include "sm_synth.h"
 #include "sm_match.h"
+#include "sm_multires.h"
 #include "sm_distance.h"
 #include "sm_metrics.h"
 #include "sm_client.h"
@@ -54,7 +55,7 @@ static int usage(FILE *f) {
           "  match A B [--basis elastic|lb|hybrid] [--init sinkhorn|nn] [-k K1] [--k0 K0]\n"
           "        [--step S] [--eta E] [--landmarks FILE] [--init-map FILE] [-o MAP.txt]\n"
           "        [--refine-sinkhorn LEVELS] [--yx MAP_BA.txt] [--fmap C.txt] [--multi-start]\n"
-          "        [--tips off|doubtful|always]\n"
+          "        [--tips off|doubtful|always] [--multires auto|on|off]\n"
           "        [--json] [--ply-out PREFIX] [--png-out FILE.png] [--view AZ,EL] [--size W,H]\n"
           "        dense point map from A to B: line i of MAP.txt = vertex of B (0-based, B's\n"
           "        numbering) matched to vertex i of A; -1 for vertices cleaning dropped.\n"
@@ -65,7 +66,10 @@ static int usage(FILE *f) {
           "        30,20; 960,480 pixels). --tips (local matching; the daemon uses\n"
           "        doubtful): the tip search, a landmark-free global start from the shapes'\n"
           "        tips (head, hands, feet), run when the map's confidence is doubtful\n"
-          "        (below 0.45, the default), always (slower), or off\n"
+          "        (below 0.45, the default), always (slower), or off. --multires (local\n"
+          "        matching): match through coarse levels of about 5,000 vertices and carry\n"
+          "        the map back to every vertex: auto (default) when a mesh has more than\n"
+          "        20,000 vertices, on, or off (the full-resolution path)\n"
           "  render A B --map MAP.txt [-o OUT.png] [--ply-out PREFIX] [--view AZ,EL]\n"
           "        [--size W,H]\n"
           "        the same pictures of a map file that match wrote\n"
@@ -304,6 +308,8 @@ typedef struct match_args {
   sm_shape_opts so;
   sm_match_opts mo;
   sm_client_match_opts co; /* the same options for the daemon: only what the user set */
+  sm_multires_opts ro;     /* --multires (local match only; distance uses the direct path) */
+  char multires_json[256]; /* the multi-resolution part of match --json, "null" if unused */
 } match_args;
 
 static void match_args_init(match_args *m) {
@@ -311,6 +317,8 @@ static void match_args_init(match_args *m) {
   sm_shape_opts_default(&m->so);
   sm_match_opts_default(&m->mo);
   sm_client_match_opts_default(&m->co);
+  sm_multires_opts_default(&m->ro);
+  snprintf(m->multires_json, sizeof m->multires_json, "null");
 }
 
 /* One option of match/distance/batch at argv[*i]: 1 consumed (and *i advanced past its
@@ -321,7 +329,8 @@ static int parse_match_opt(int argc, char **argv, int *i, match_args *m) {
   if (!strcmp(a, "--multi-start")) { m->mo.multi_start = m->co.multi_start = 1; return 1; }
   static const char *const valued[] = {"--basis", "--init", "-k", "--k0", "--step",
                                        "--refine-sinkhorn", "--eta", "--landmarks",
-                                       "--init-map", "-o", "--yx", "--fmap", "--tips", NULL};
+                                       "--init-map", "-o", "--yx", "--fmap", "--tips", "--multires",
+                                       NULL};
   int known = 0;
   for (int j = 0; valued[j]; j++) known |= !strcmp(a, valued[j]);
   if (!known) return 0;
@@ -350,6 +359,10 @@ static int parse_match_opt(int argc, char **argv, int *i, match_args *m) {
     m->mo.extremities = !strcmp(v, "off") ? SM_EXT_OFF : !strcmp(v, "doubtful")
                         ? SM_EXT_WHEN_DOUBTFUL : !strcmp(v, "always") ? SM_EXT_ALWAYS : -1;
     if (m->mo.extremities < 0) return -1;
+  } else if (!strcmp(a, "--multires")) {
+    m->ro.mode = !strcmp(v, "auto") ? SM_MULTIRES_AUTO : !strcmp(v, "on") ? SM_MULTIRES_ON
+                 : !strcmp(v, "off") ? SM_MULTIRES_OFF : -1;
+    if (m->ro.mode < 0) return -1;
   }
   return 1;
 }
@@ -462,7 +475,7 @@ static void print_match_json(const match_args *m, const sm_shape *x, const sm_sh
          "\"orientation\":%.6f,\"confidence\":%s,\"flipped\":%d,\"init_distinct\":%.6f,"
          "\"start_used\":\"%s\",\"dirichlet\":%.6f,\"tips\":{\"tried\":%d,\"kept\":%d},"
          "\"time\":{\"basis\":%.4f,\"init\":%.4f,\"refine\":%.4f,\"total\":%.4f},"
-         "\"map\":\"%s\"}\n",
+         "\"multires\":%s,\"map\":\"%s\"}\n",
          m->a, m->b, x->mesh->n_input, y->mesh->n_input,
          m->mo.basis == SM_MATCH_LB ? "lb" : m->mo.basis == SM_MATCH_ELASTIC ? "elastic" : "hybrid",
          m->mo.init == SM_INIT_NN ? "nn" : "sinkhorn", m->mo.k0, m->mo.k1, m->mo.step,
@@ -470,7 +483,7 @@ static void print_match_json(const match_args *m, const sm_shape *x, const sm_sh
          r->init_used == SM_INIT_NN ? "nn" : "sinkhorn", r->dirichlet, r->ext_tried,
          r->ext_hypothesis,
          x->t_clean + x->t_lb + x->t_elastic + x->t_desc + y->t_clean + y->t_lb + y->t_elastic + y->t_desc,
-         r->t_init, r->t_refine, t_total, m->out ? m->out : "");
+         r->t_init, r->t_refine, t_total, m->multires_json, m->out ? m->out : "");
 }
 
 /* The functional map as text: k rows of k numbers, row i = coefficient i on A. */
@@ -491,6 +504,10 @@ static int write_fmap(const char *path, const double *C, int k) {
 
 typedef struct match_run {
   sm_shape *x, *y;
+  /* The multi-resolution path: its shapes, and views of their full-resolution meshes
+   * (mesh and preparation times only) for what follows the match. */
+  sm_multires_shape *mx, *my;
+  sm_shape vx, vy;
   int32_t *lm, *init;
   sm_match_result r;
   double t_total;
@@ -502,12 +519,81 @@ static void match_run_free(match_run *mr) {
   sm_match_result_free(&mr->r);
   sm_shape_destroy(mr->x);
   sm_shape_destroy(mr->y);
+  sm_multires_shape_destroy(mr->mx);
+  sm_multires_shape_destroy(mr->my);
+}
+
+/* The multi-resolution path (sm_multires.h) when --multires and the sizes ask for it:
+ * returns 1 when it ran (its status in *rc), 0 for the direct path. The result is moved
+ * into mr->r as sm_match would give it: the fine maps and their orientation, confidence
+ * and Dirichlet energy, the coarse level's C, start and tip-search fields. */
+static int run_multires(match_args *m, match_run *mr, int *rc) {
+  sm_error err;
+  sm_mesh *ra = NULL, *rb = NULL;
+  if (m->ro.mode == SM_MULTIRES_OFF) return 0;
+  if (sm_mesh_read_file(m->a, NULL, &ra, &err)) return *rc = fail(m->a, &err), 1;
+  if (sm_mesh_read_file(m->b, NULL, &rb, &err)) {
+    sm_mesh_destroy(ra);
+    return *rc = fail(m->b, &err), 1;
+  }
+  int want = sm_multires_wanted(&m->ro, ra->nv, rb->nv);
+  if (want) {
+    progress("building the coarse level of %s ...", m->a);
+    *rc = sm_multires_shape_prepare(ra, &m->so, &m->ro, &mr->mx, &err) ? fail(m->a, &err) : 0;
+    progress("building the coarse level of %s ...", m->b);
+    if (!*rc)
+      *rc = sm_multires_shape_prepare(rb, &m->so, &m->ro, &mr->my, &err) ? fail(m->b, &err) : 0;
+    progress("%s", "");
+  }
+  sm_mesh_destroy(ra);
+  sm_mesh_destroy(rb);
+  if (!want || *rc) return want;
+  sm_multires_shape *s[2] = {mr->mx, mr->my};
+  sm_shape *v[2] = {&mr->vx, &mr->vy};
+  for (int i = 0; i < 2; i++) {
+    v[i]->mesh = s[i]->mesh;
+    v[i]->t_clean = s[i]->t_clean + s[i]->t_decimate + s[i]->t_locate;
+    v[i]->t_lb = s[i]->coarse->t_clean + s[i]->coarse->t_lb;
+    v[i]->t_elastic = s[i]->coarse->t_elastic;
+    v[i]->t_desc = s[i]->coarse->t_desc;
+  }
+  *rc = translate_inputs(m, &mr->vx, &mr->vy, &mr->lm, &mr->init);
+  sm_multires_result res;
+  progress("%s", "matching ...");
+  if (!*rc && sm_multires_match(mr->mx, mr->my, &m->mo, &m->ro, &res, &err)) *rc = fail("match", &err);
+  progress("%s", "");
+  if (*rc) return 1;
+  mr->r = res.coarse;
+  free(mr->r.T);
+  free(mr->r.T_yx);
+  mr->r.T = res.T;
+  mr->r.T_yx = res.T_yx;
+  mr->r.nx = res.nx;
+  mr->r.ny = res.ny;
+  mr->r.orientation = res.orientation;
+  mr->r.confidence = res.confidence;
+  mr->r.continuity = res.continuity;
+  mr->r.cycle = res.cycle;
+  mr->r.dirichlet = res.dirichlet;
+  snprintf(m->multires_json, sizeof m->multires_json,
+           "{\"coarse_source\":%d,\"coarse_target\":%d,\"time\":{\"prepare\":%.4f,"
+           "\"coarse_bases\":%.4f,\"coarse_match\":%.4f,\"prolong\":%.4f}}",
+           mr->mx->coarse->mesh->nv, mr->my->coarse->mesh->nv,
+           mr->mx->t_clean + mr->mx->t_decimate + mr->mx->t_locate + mr->my->t_clean +
+               mr->my->t_decimate + mr->my->t_locate,
+           mr->mx->t_coarse + mr->my->t_coarse, res.t_match, res.t_prolong);
+  return 1;
 }
 
 static int run_match(match_args *m, match_run *mr) {
   memset(mr, 0, sizeof *mr);
   double t0 = sm_now();
-  int rc = prepare_shape(m->a, &m->so, &mr->x) || prepare_shape(m->b, &m->so, &mr->y);
+  int rc = 0;
+  if (run_multires(m, mr, &rc)) {
+    mr->t_total = sm_now() - t0;
+    return rc;
+  }
+  rc = prepare_shape(m->a, &m->so, &mr->x) || prepare_shape(m->b, &m->so, &mr->y);
   if (!rc) rc = translate_inputs(m, mr->x, mr->y, &mr->lm, &mr->init);
   if (!rc) {
     sm_error err;
@@ -1361,7 +1447,7 @@ static int cmd_match(int argc, char **argv) {
   if (addr) return remote_match(addr, &m);
   m.mo.want_yx = m.out_yx != NULL;
   int rc = run_match(&m, &mr);
-  const sm_shape *x = mr.x, *y = mr.y;
+  const sm_shape *x = mr.mx ? &mr.vx : mr.x, *y = mr.my ? &mr.vy : mr.y;
   if (!rc) {
     int32_t *map = malloc((size_t)x->mesh->n_input * sizeof *map);
     sm_match_to_input(x, y, mr.r.T, map);
@@ -1382,6 +1468,10 @@ static int cmd_match(int argc, char **argv) {
               mr.t_total, x->t_lb + x->t_elastic + y->t_lb + y->t_elastic, mr.r.t_init,
               mr.r.t_refine, mr.r.orientation, mr.r.flipped ? " (mirror fixed)" : "",
               mr.r.confidence, m.out ? "; map in " : "", m.out ? m.out : "");
+    if (!rc && !m.json && mr.mx)
+      fprintf(stderr, "multi-resolution: coarse levels of %d and %d vertices (bases = "
+              "decimation, location and coarse bases)\n", mr.mx->coarse->mesh->nv,
+              mr.my->coarse->mesh->nv);
   }
   match_run_free(&mr);
   return rc ? 1 : 0;
@@ -1394,6 +1484,7 @@ static int cmd_distance(int argc, char **argv) {
   if (take_server(&argc, argv, &addr) || parse_match_args(argc, argv, &m)) return usage(stderr);
   if (addr) return remote_distance(addr, &m);
   sm_distance_match_opts(&m.mo);
+  m.ro.mode = SM_MULTIRES_OFF; /* the distance needs the full-resolution bases */
   int rc = run_match(&m, &mr);
   sm_distance_parts d;
   sm_error err;
