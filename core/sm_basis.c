@@ -115,6 +115,28 @@ static int eigs(const sm_csc *A, const double *D, int nev, const sm_basis_opts *
   return rc;
 }
 
+/* An eigenvector's sign is arbitrary, and which one a solver returns depends on its start
+ * vectors, block size and rounding: fix it from the function itself, so that a basis is
+ * the same whatever computed it (the ARPACK and block solvers agree to 1e-13 on the
+ * eigenvalues and the functions up to sign). The sign makes the mass-weighted third moment
+ * sum_v m_v phi(v)^3 positive (intrinsic: invariant under rigid motion and renumbering);
+ * for a function without skew (|moment| at rounding level) the entry of largest magnitude
+ * is made positive instead. */
+static void fix_signs(double *phi, int32_t n, int k, const double *mass) {
+  for (int i = 0; i < k; i++) {
+    double *p = phi + (size_t)i * n, m3 = 0, m2 = 0, big = 0;
+    for (int32_t v = 0; v < n; v++) {
+      double x = p[v];
+      m3 += mass[v] * x * x * x;
+      m2 += mass[v] * x * x;
+      if (fabs(x) > fabs(big)) big = x;
+    }
+    double s = fabs(m3) > 1e-8 * pow(m2, 1.5) ? m3 : big;
+    if (s < 0)
+      for (int32_t v = 0; v < n; v++) p[v] = -p[v];
+  }
+}
+
 static int compute_lb(const sm_mesh *m, const sm_basis_opts *o, sm_basis *b, sm_error *err) {
   double t0 = sm_now();
   sm_csc *W;
@@ -123,6 +145,7 @@ static int compute_lb(const sm_mesh *m, const sm_basis_opts *o, sm_basis *b, sm_
   if (rc) return rc;
   rc = eigs(W, b->mass, o->k, o, b->evals, b->phi, &b->timing, err);
   sm_csc_destroy(W);
+  if (!rc) fix_signs(b->phi, b->n, o->k, b->mass);
   return rc;
 }
 
@@ -365,6 +388,7 @@ static int compute_elastic(const sm_mesh *m, const sm_basis_opts *o, sm_basis *b
     double t1 = sm_now();
     memcpy(b->evals, ev + b->n_kernel, (size_t)o->k * sizeof *ev);
     project_on_normals(U, n, b->n_kernel, o->k, N, b->phi);
+    fix_signs(b->phi, n, o->k, b->mass);
     rc = gram_factor(b, err);
     b->timing.projection = sm_now() - t1;
   }

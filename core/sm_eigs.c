@@ -1,14 +1,42 @@
+/* DESIGN
+ *   Block Krylov-Schur (thick-restart block Lanczos) on the operator T = S K^-1 S, with
+ *   S = diag(sqrt(D)) and K = A - sigma D factored once by CHOLMOD. T is symmetric in the
+ *   plain inner product and T z = theta z <=> A x = lambda D x with x = S^-1 z and
+ *   lambda = sigma + 1 / theta, so the nev largest theta are the nev smallest lambda.
+ *
+ *   Invariant. V = [V_1 .. V_k] (n x k, orthonormal) and the pending block P (n x b,
+ *   orthonormal, P ⊥ V) satisfy  T V = V H + P C,  H = V^T T V (k x k, symmetric) and
+ *   C = P^T T V (b x k). One step appends P to V, computes T P with one CHOLMOD solve of
+ *   b right-hand sides, fills the new columns of H by V^T T P (two passes of classical
+ *   Gram-Schmidt as BLAS 3), and QR-factors the remainder (I - V V^T) T P = P' R into the
+ *   next pending block: then C = [0 .. 0 R]. A Ritz pair (theta, V y) of H has the
+ *   residual T V y - theta V y = P C y, so its norm ||R y_last|| (y_last: y's last b
+ *   entries) costs nothing of size n. Restart (k + b over the basis size): keep the top
+ *   `keep` Ritz vectors, V <- V Y_keep, H <- diag(theta), C <- C Y_keep; the pending block
+ *   stays, and the relation holds without any new solve (Stewart's Krylov-Schur, in block
+ *   form). Convergence: ||r_i|| <= tol theta_i for the nev largest, as ARPACK's test.
+ *
+ *   Why a block method rather than ARPACK (measured, homerA elastic k = 100, one BLAS
+ *   thread): single-vector Lanczos spent half of its 2.3 s in one-vector triangular solves
+ *   (reading the 2M-entry factor once per vector: memory bound) and half in level-2
+ *   reorthogonalization; a block of b vectors reads the factor once per b and turns both
+ *   into level-3 BLAS. A block of b also captures eigenvalues of multiplicity up to b
+ *   directly, where single-vector Lanczos needs rounding to find the second copy (ARPACK
+ *   lost one copy of an exactly 10-fold eigenvalue). And ARPACK keeps Fortran SAVE state:
+ *   it forced a process-wide lock; this module has no global state.
+ *
+ *   Problems too small for the Krylov space (n < basis + 2 b) are solved densely (LAPACK
+ *   dsyevr on S^-1 A S^-1).
+ */
 #include "sm_eigs.h"
 
-#include <arpack/arpack.h>
+#include <cblas.h>
 #include <cholmod.h>
+#include <lapacke.h>
 #include <math.h>
-#include <pthread.h>
 #include <stdlib.h>
 #include <string.h>
 #include <time.h>
-
-static pthread_mutex_t arpack_lock = PTHREAD_MUTEX_INITIALIZER;
 
 double sm_now(void) {
   struct timespec ts;
@@ -52,17 +80,17 @@ static cholmod_sparse *shifted_matrix(const sm_csc *A, const double *D, double s
   return K;
 }
 
-/* A deterministic, well-spread start vector: reproducible results run to run. Uniform
- * pseudo-random entries are the standard Lanczos start (no eigenvector is likely to be
- * missing from it); results then depend on the BLAS thread count only through rounding. */
-static void start_vector(double *r, int32_t n) {
-  uint64_t s = 0x9E3779B97F4A7C15ULL;
-  for (int32_t i = 0; i < n; i++) {
+/* Deterministic, well-spread start vectors (xorshift64*, uniform in [-1/2, 1/2)): results
+ * are reproducible run to run; no eigenvector is likely to be missing from them. */
+static void random_fill(double *r, size_t len, uint64_t *state) {
+  uint64_t s = *state;
+  for (size_t i = 0; i < len; i++) {
     s ^= s >> 12;
     s ^= s << 25;
     s ^= s >> 27;
     r[i] = (double)((s * 2685821657736338717ULL) >> 11) / 9007199254740992.0 - 0.5;
   }
+  *state = s;
 }
 
 static void set_ordering(cholmod_common *c, int ordering) {
@@ -76,30 +104,35 @@ static void set_ordering(cholmod_common *c, int ordering) {
 typedef struct solver {
   cholmod_common c;
   cholmod_factor *L;
-  cholmod_dense *X, *Y, *E;
-  cholmod_dense B;
-  const double *s; /* sqrt(D) */
-  double *tmp;
+  cholmod_dense *X, *Y, *E; /* cholmod_solve2's workspace, kept across calls */
+  const double *s;          /* sqrt(D) */
+  double *tmp;              /* n x b */
   int32_t n;
 } solver;
 
-/* y = s K^-1 s x */
-static int apply_op(solver *sv, const double *x, double *y) {
-  for (int32_t i = 0; i < sv->n; i++) sv->tmp[i] = sv->s[i] * x[i];
-  if (!cholmod_solve2(CHOLMOD_A, sv->L, &sv->B, NULL, &sv->X, NULL, &sv->Y, &sv->E, &sv->c))
+/* Y = S K^-1 S X for the b columns of X (n x b, column-major); one multi-right-hand-side
+ * solve: the supernodal factor is read once for all b columns (dtrsm/dgemm per supernode). */
+static int apply_block(solver *sv, const double *X, int b, double *Y) {
+  size_t n = (size_t)sv->n;
+  for (int j = 0; j < b; j++)
+    for (size_t i = 0; i < n; i++) sv->tmp[j * n + i] = sv->s[i] * X[j * n + i];
+  cholmod_dense B = {.nrow = n, .ncol = (size_t)b, .nzmax = n * (size_t)b, .d = n,
+                     .x = sv->tmp, .xtype = CHOLMOD_REAL, .dtype = CHOLMOD_DOUBLE};
+  if (!cholmod_solve2(CHOLMOD_A, sv->L, &B, NULL, &sv->X, NULL, &sv->Y, &sv->E, &sv->c))
     return SM_ENUMERIC;
   const double *z = sv->X->x;
-  for (int32_t i = 0; i < sv->n; i++) y[i] = sv->s[i] * z[i];
+  size_t ld = sv->X->d;
+  for (int j = 0; j < b; j++)
+    for (size_t i = 0; i < n; i++) Y[j * n + i] = sv->s[i] * z[j * ld + i];
   return SM_OK;
 }
 
 /* Supernodal LL' with CHOLMOD's own ordering choice. Measured on homerA elastic
- * (283 solves, one BLAS thread, load ~4): operator time 1.50-1.63 s supernodal against
- * 1.96-2.19 s for a simplicial LDL' factor and 2.16-2.19 s for the supernodal factor
- * converted to simplicial LL'. Orderings: AMD (the default pick) 2.01M nonzeros, METIS
- * 2.06M, NESDIS 1.98M, operator times within the noise. The solve's permutation of the
- * right-hand side is O(n) against O(nnz(L)) = 2M per solve, so running ARPACK in the
- * permuted space would gain under 1%. */
+ * (one-vector solves, one BLAS thread, load ~4): operator time 1.50-1.63 s supernodal
+ * against 1.96-2.19 s for a simplicial LDL' factor and 2.16-2.19 s for the supernodal
+ * factor converted to simplicial LL'; with blocks of right-hand sides the supernodal
+ * factor's advantage only grows (level-3 BLAS per supernode). Orderings: AMD (the default
+ * pick) 2.01M nonzeros, METIS 2.06M, NESDIS 1.98M, operator times within the noise. */
 static int factor(solver *sv, const sm_csc *A, const double *D, double sigma,
                   sm_eigs_stats *st, sm_error *err) {
   double t0 = sm_now();
@@ -123,95 +156,312 @@ static int factor(solver *sv, const sm_csc *A, const double *D, double sigma,
   return SM_OK;
 }
 
-typedef struct lanczos {
-  int n, nev, ncv, lworkl;
-  int iparam[11], ipntr[14];
-  double *resid, *V, *workd, *workl, *Z, *d;
-  int *select;
-} lanczos;
+/* ---- block Krylov-Schur ------------------------------------------------------------- */
 
-static void lanczos_free(lanczos *lz) {
-  free(lz->resid); free(lz->V); free(lz->workd); free(lz->workl);
-  free(lz->Z); free(lz->d); free(lz->select);
+typedef struct bks {
+  int n, nev, b, mmax, keep; /* mmax: basis columns before a restart (pending block extra) */
+  double *V;   /* n x (mmax + b): basis, then the pending block */
+  double *W;   /* n x b: T P */
+  double *H;   /* mmax x mmax, leading dimension mmax */
+  double *R;   /* b x b: C's last block (upper triangular) */
+  double *T;   /* mmax x mmax: copy of H for LAPACK */
+  double *Z;   /* mmax x keep: Ritz vectors of H (descending theta) */
+  double *th;  /* keep: Ritz values, descending */
+  double *res; /* keep: residual norms */
+  double *G;   /* (mmax + b) x b: projections */
+  double *tau; /* b */
+  double *rows;/* row chunk for the in-place restart: RCHUNK x keep */
+  int *isuppz; /* 2 mmax */
+  uint64_t seed;
+} bks;
+
+enum { RCHUNK = 256 };
+
+static void bks_free(bks *w) {
+  free(w->V); free(w->W); free(w->H); free(w->R); free(w->T); free(w->Z); free(w->th);
+  free(w->res); free(w->G); free(w->tau); free(w->rows); free(w->isuppz);
 }
 
-static int lanczos_alloc(lanczos *lz, int n, int nev, int ncv) {
-  memset(lz, 0, sizeof *lz);
-  lz->n = n;
-  lz->nev = nev;
-  lz->ncv = ncv;
-  lz->lworkl = ncv * (ncv + 8);
-  lz->resid = malloc((size_t)n * sizeof(double));
-  lz->V = malloc((size_t)n * ncv * sizeof(double));
-  lz->workd = malloc((size_t)3 * n * sizeof(double));
-  lz->workl = malloc((size_t)lz->lworkl * sizeof(double));
-  lz->Z = malloc((size_t)n * nev * sizeof(double));
-  lz->d = malloc((size_t)nev * sizeof(double));
-  lz->select = calloc((size_t)ncv, sizeof(int));
-  if (!lz->resid || !lz->V || !lz->workd || !lz->workl || !lz->Z || !lz->d || !lz->select)
+static int bks_alloc(bks *w, int n, int nev, int b, int mmax, int keep) {
+  memset(w, 0, sizeof *w);
+  w->n = n; w->nev = nev; w->b = b; w->mmax = mmax; w->keep = keep;
+  size_t m = (size_t)mmax;
+  w->V = malloc((size_t)n * (m + (size_t)b) * sizeof(double));
+  w->W = malloc((size_t)n * b * sizeof(double));
+  w->H = calloc(m * m, sizeof(double));
+  w->R = calloc((size_t)b * b, sizeof(double));
+  w->T = malloc(m * m * sizeof(double));
+  w->Z = malloc(m * (size_t)keep * sizeof(double));
+  w->th = malloc((size_t)keep * sizeof(double));
+  w->res = malloc((size_t)keep * sizeof(double));
+  w->G = malloc((m + (size_t)b) * b * sizeof(double));
+  w->tau = malloc((size_t)b * sizeof(double));
+  w->rows = malloc((size_t)RCHUNK * keep * sizeof(double));
+  w->isuppz = malloc(2 * m * sizeof(int));
+  w->seed = 0x9E3779B97F4A7C15ULL;
+  if (!w->V || !w->W || !w->H || !w->R || !w->T || !w->Z || !w->th || !w->res || !w->G ||
+      !w->tau || !w->rows || !w->isuppz)
     return SM_ENOMEM;
-  start_vector(lz->resid, n);
   return SM_OK;
 }
 
-static int run_lanczos(solver *sv, lanczos *lz, const sm_eigs_opts *o, sm_eigs_stats *st,
-                       sm_error *err) {
-  /* 1e-9, measured on homerA elastic k = 100: 1e-8 to 1e-11 all stop after the same 283
-   * solves (ARPACK overshoots at the restart that converges); 1e-6 saves a restart (226)
-   * but leaves residuals of 1e-4 lambda_max; 1e-12 costs the koala 340 solves instead
-   * of 281 (+20% CPU). maxiter and maxsolves only bound a failing run: normal runs
-   * restart 1-3 times and apply the operator 1-2 ncv times. They used to allow 1000
-   * restarts: with a shift far below the wanted eigenvalues (an operator whose spectrum is
-   * compressed to relative gaps of 1e-6) that was minutes to hours inside dsaupd, with
-   * nothing converging (centaur3 elastic: 21 solves per restart, 0 of 112 converged). */
+/* X (n x b) -= Q (n x k) Q^T X, accumulating Q^T X into G (k x b, ld k) when acc. */
+static void project_out(const double *Q, int n, int k, double *X, int b, double *G, int acc,
+                        double *Gtmp) {
+  if (k == 0) return;
+  double *g = acc ? Gtmp : G;
+  cblas_dgemm(CblasColMajor, CblasTrans, CblasNoTrans, k, b, n, 1.0, Q, n, X, n, 0.0, g, k);
+  cblas_dgemm(CblasColMajor, CblasNoTrans, CblasNoTrans, n, b, k, -1.0, Q, n, g, k, 1.0, X, n);
+  if (acc)
+    for (size_t i = 0; i < (size_t)k * b; i++) G[i] += g[i];
+}
+
+/* Householder QR of X (n x b) in place: X <- Q, Rout (b x b, upper) <- R. */
+static int qr_inplace(double *X, int n, int b, double *tau, double *Rout) {
+  if (LAPACKE_dgeqrf(LAPACK_COL_MAJOR, n, b, X, n, tau)) return SM_ENUMERIC;
+  for (int j = 0; j < b; j++)
+    for (int i = 0; i < b; i++) Rout[(size_t)j * b + i] = i <= j ? X[(size_t)j * n + i] : 0.0;
+  if (LAPACKE_dorgqr(LAPACK_COL_MAJOR, n, b, b, X, n, tau)) return SM_ENUMERIC;
+  return SM_OK;
+}
+
+/* Orthonormalizes X (n x b) against Q (n x k) and within itself: X_in = Q G + X_out R
+ * (up to rounding); G (k x b) is not returned (callers that need it project first).
+ * Columns of X_in that are (numerically) in span(Q) come out as other unit vectors ⊥ Q:
+ * after the first QR such a column is a rounding-noise direction, which one more
+ * projection and QR turn into a valid one, with R's tiny entries still describing X_in. */
+static int orthonormalize(bks *w, const double *Q, int k, double *X, double *Rout,
+                          double *Gtmp) {
+  int n = w->n, b = w->b;
+  double R1[64 * 64], R2[64 * 64];
+  if (qr_inplace(X, n, b, w->tau, R1)) return SM_ENUMERIC;
+  double dmax = 0, dmin = INFINITY;
+  for (int i = 0; i < b; i++) {
+    double d = fabs(R1[(size_t)i * b + i]);
+    dmax = fmax(dmax, d);
+    dmin = fmin(dmin, d);
+  }
+  if (!(dmin > 1e-8 * dmax)) {
+    project_out(Q, n, k, X, b, Gtmp, 0, NULL);
+    project_out(Q, n, k, X, b, Gtmp, 0, NULL);
+    if (qr_inplace(X, n, b, w->tau, R2)) return SM_ENUMERIC;
+    /* Rout = R2 R1 (both upper triangular) */
+    for (int j = 0; j < b; j++)
+      for (int i = 0; i < b; i++) {
+        double s = 0;
+        for (int l = i; l <= j; l++) s += R2[(size_t)l * b + i] * R1[(size_t)j * b + l];
+        Rout[(size_t)j * b + i] = s;
+      }
+  } else {
+    memcpy(Rout, R1, (size_t)b * b * sizeof(double));
+  }
+  return SM_OK;
+}
+
+/* Top m Ritz pairs of H (k x k): th descending, Z columns (ld k) in the same order, and
+ * their residual norms ||R y_last||. */
+static int ritz(bks *w, int k, int m) {
+  int b = w->b;
+  for (int j = 0; j < k; j++)
+    memcpy(w->T + (size_t)j * k, w->H + (size_t)j * w->mmax, (size_t)k * sizeof(double));
+  double *ev = malloc((size_t)k * sizeof *ev), *Y = w->T;
+  if (!ev) return SM_ENOMEM;
+  /* All pairs by divide and conquer: at k <= a few hundred it is faster than bisection
+   * and inverse iteration for the top m (dsyevr's path for a partial range). */
+  int info = LAPACKE_dsyevd(LAPACK_COL_MAJOR, 'V', 'L', k, w->T, k, ev);
+  if (info) {
+    free(ev);
+    return SM_ENUMERIC;
+  }
+  Y += (size_t)(k - m) * k;
+  ev += k - m;
+  for (int j = 0; j < m; j++) { /* ascending -> descending */
+    w->th[j] = ev[m - 1 - j];
+    memcpy(w->Z + (size_t)j * k, Y + (size_t)(m - 1 - j) * k, (size_t)k * sizeof(double));
+  }
+  free(ev - (k - m));
+  for (int j = 0; j < m; j++) {
+    const double *y = w->Z + (size_t)j * k + (k - b);
+    double s2 = 0;
+    for (int i = 0; i < b; i++) {
+      double r = 0;
+      for (int l = i; l < b; l++) r += w->R[(size_t)l * b + i] * y[l];
+      s2 += r * r;
+    }
+    w->res[j] = sqrt(s2);
+  }
+  return SM_OK;
+}
+
+/* V[:, 0:m] <- V[:, 0:k] Z[:, 0:m] in place, by chunks of rows. */
+static void rotate_basis(bks *w, int k, int m) {
+  int n = w->n;
+  for (int r0 = 0; r0 < n; r0 += RCHUNK) {
+    int rn = n - r0 < RCHUNK ? n - r0 : RCHUNK;
+    cblas_dgemm(CblasColMajor, CblasNoTrans, CblasNoTrans, rn, m, k, 1.0, w->V + r0, n, w->Z,
+                k, 0.0, w->rows, rn);
+    for (int j = 0; j < m; j++)
+      memcpy(w->V + (size_t)j * n + r0, w->rows + (size_t)j * rn, (size_t)rn * sizeof(double));
+  }
+}
+
+static int run_bks(solver *sv, bks *w, const sm_eigs_opts *o, sm_eigs_stats *st,
+                   sm_error *err) {
+  /* tol 1e-9 relative to theta, as the ARPACK runs before it (see sm_basis.c). */
   double tol = o->tol > 0 ? o->tol : 1e-9;
-  int maxsolves = o->maxsolves > 0 ? o->maxsolves : 10 * lz->ncv + 100;
-  int ido = 0, info = 1; /* info = 1: use our start vector */
-  lz->iparam[0] = 1;     /* exact shifts */
-  lz->iparam[2] = o->maxiter > 0 ? o->maxiter : 100;
-  lz->iparam[6] = 1;     /* mode 1: standard problem with our operator */
-  for (;;) {
-    dsaupd_c(&ido, "I", lz->n, "LA", lz->nev, tol, lz->resid, lz->ncv, lz->V, lz->n,
-             lz->iparam, lz->ipntr, lz->workd, lz->workl, lz->lworkl, &info);
-    if (ido != -1 && ido != 1) break;
-    if (o->cancel && o->cancel(o->cancel_ud))
-      return sm_error_set(err, SM_ECANCELED, "eigensolver canceled");
-    if (st->nsolves >= maxsolves)
-      return sm_error_set(err, SM_ENUMERIC, "Lanczos: no convergence after %d operator "
-                          "applications (%d eigenpairs, %d Lanczos vectors); the problem is "
-                          "ill-conditioned or the shift is far from the wanted eigenvalues",
-                          st->nsolves, lz->nev, lz->ncv);
+  int n = w->n, b = w->b, nev = w->nev, mmax = w->mmax;
+  int maxsolves = o->maxsolves > 0 ? o->maxsolves : 10 * mmax + 100;
+  int maxrestarts = o->maxiter > 0 ? o->maxiter : 100;
+  double *Gtmp = malloc(((size_t)mmax + b) * b * sizeof *Gtmp);
+  if (!Gtmp) return sm_error_set(err, SM_ENOMEM, "eigensolver: out of memory");
+  double R0[64 * 64];
+  random_fill(w->V, (size_t)n * b, &w->seed);
+  int rc = orthonormalize(w, NULL, 0, w->V, R0, Gtmp);
+  int k = 0, conv = 0, krestart = 0;
+  /* Convergence is tested only once the space is well past nev: a Ritz value found early
+   * can look converged while an eigenvalue above it is not in the space yet. */
+  int kcheck = nev + 2 * b < mmax ? nev + 2 * b : mmax;
+  while (!rc) {
+    if (o->cancel && o->cancel(o->cancel_ud)) {
+      rc = sm_error_set(err, SM_ECANCELED, "eigensolver canceled");
+      break;
+    }
+    if (st->nsolves + b > maxsolves) {
+      rc = sm_error_set(err, SM_ENUMERIC, "block Lanczos: no convergence after %d operator "
+                        "applications (%d eigenpairs, %d of them converged; basis %d, block "
+                        "%d); the problem is ill-conditioned or the shift is far from the "
+                        "wanted eigenvalues", st->nsolves, nev, conv, mmax, b);
+      break;
+    }
+    /* Expand: P = V[:, k:k+b] joins the basis. */
+    double *P = w->V + (size_t)k * n;
     double t0 = sm_now();
-    if (apply_op(sv, lz->workd + lz->ipntr[0] - 1, lz->workd + lz->ipntr[1] - 1))
-      return sm_error_set(err, SM_ENUMERIC, "sparse triangular solve failed");
+    if (apply_block(sv, P, b, w->W)) {
+      rc = sm_error_set(err, SM_ENUMERIC, "sparse triangular solve failed");
+      break;
+    }
     st->t_op += sm_now() - t0;
-    st->nsolves++;
+    st->nsolves += b;
+    int k1 = k + b;
+    /* New columns of H: V^T T P, by two passes of block Gram-Schmidt on W = T P. */
+    /* Local pass: in exact arithmetic T P couples only to P and the block before it (or,
+     * right after a restart, to every kept Ritz vector), so removing those first leaves
+     * rounding-level components along the rest of V; one full pass removes them, and a
+     * second runs only when that pass still cancelled most of a column (the test of
+     * Daniel, Gragg, Kaufman and Stewart, as ARPACK's dsaitr does for one vector). */
+    int lo = k == krestart ? 0 : k - b;
+    project_out(w->V + (size_t)lo * n, n, k1 - lo, w->W, b, Gtmp, 0, NULL);
+    double nb[64], ratio = INFINITY;
+    for (int j = 0; j < b; j++) nb[j] = cblas_dnrm2(n, w->W + (size_t)j * n, 1);
+    project_out(w->V, n, k1, w->W, b, w->G, 0, NULL);
+    for (int j = 0; j < b; j++)
+      for (int i = lo; i < k1; i++) w->G[(size_t)j * k1 + i] += Gtmp[(size_t)j * (k1 - lo) + i - lo];
+    for (int j = 0; j < b; j++)
+      ratio = fmin(ratio, cblas_dnrm2(n, w->W + (size_t)j * n, 1) / nb[j]);
+    if (!(ratio > 0.717)) project_out(w->V, n, k1, w->W, b, w->G, 1, Gtmp);
+    for (int j = 0; j < b; j++)
+      for (int i = 0; i < k1; i++) w->H[(size_t)(k + j) * mmax + i] = w->G[(size_t)j * k1 + i];
+    for (int j = 0; j < b; j++) /* symmetric: mirror the new block row */
+      for (int i = 0; i < k1; i++) {
+        double *hij = &w->H[(size_t)(k + j) * mmax + i], *hji = &w->H[(size_t)i * mmax + k + j];
+        if (i >= k && i > k + j) continue;
+        double v = i >= k ? 0.5 * (*hij + *hji) : *hij;
+        *hij = *hji = v;
+      }
+    k = k1;
+    /* Next pending block: the part of T P outside the basis. */
+    memcpy(w->V + (size_t)k * n, w->W, (size_t)n * b * sizeof(double));
+    if ((rc = orthonormalize(w, w->V, k, w->V + (size_t)k * n, w->R, Gtmp))) {
+      rc = sm_error_set(err, SM_ENUMERIC, "eigensolver: QR of a block failed");
+      break;
+    }
+    int full = k + b > mmax;
+    if (k < kcheck && !full) continue;
+    if (!full && ((k - kcheck) / b) % 2 != 0) continue;
+    int m = w->keep < k ? w->keep : k;
+    if (ritz(w, k, m)) {
+      rc = sm_error_set(err, SM_ENUMERIC, "eigensolver: Rayleigh-Ritz failed (k = %d)", k);
+      break;
+    }
+    conv = 0;
+    while (conv < nev && conv < m && w->res[conv] <= tol * fabs(w->th[conv])) conv++;
+    if (conv >= nev) {
+      rotate_basis(w, k, nev);
+      break;
+    }
+    if (!full) continue;
+    if (st->restarts >= maxrestarts) {
+      rc = sm_error_set(err, SM_ENUMERIC, "block Lanczos: %d of %d eigenpairs converged in %d "
+                        "restarts", conv, nev, st->restarts);
+      break;
+    }
+    /* Thick restart: keep the top m Ritz vectors, move the pending block after them. */
+    st->restarts++;
+    rotate_basis(w, k, m);
+    memmove(w->V + (size_t)m * n, w->V + (size_t)k * n, (size_t)n * b * sizeof(double));
+    /* C <- C Z: its last block R times Z's last b rows; stored as the b x m coupling in
+     * H's rows m..m+b-1 after the next expansion, which recomputes them from V^T T P. */
+    memset(w->H, 0, (size_t)mmax * mmax * sizeof(double));
+    for (int j = 0; j < m; j++) w->H[(size_t)j * mmax + j] = w->th[j];
+    k = krestart = m;
   }
-  st->restarts = lz->iparam[2];
-  if (info == 1)
-    return sm_error_set(err, SM_ENUMERIC, "Lanczos: %d of %d eigenpairs converged in %d restarts",
-                        lz->iparam[4], lz->nev, lz->iparam[2]);
-  if (info != 0)
-    return sm_error_set(err, SM_ENUMERIC, "ARPACK dsaupd failed with info = %d", info);
-  dseupd_c(1, "A", lz->select, lz->d, lz->Z, lz->n, 0.0, "I", lz->n, "LA", lz->nev, tol,
-           lz->resid, lz->ncv, lz->V, lz->n, lz->iparam, lz->ipntr, lz->workd, lz->workl,
-           lz->lworkl, &info);
-  if (info != 0)
-    return sm_error_set(err, SM_ENUMERIC, "ARPACK dseupd failed with info = %d", info);
-  return SM_OK;
+  free(Gtmp);
+  return rc;
 }
 
-/* ARPACK returns the operator's eigenvalues nu ascending; lambda = sigma + 1/nu is then
- * descending, so reverse, and undo the symmetric scaling of the eigenvectors. */
-static void unpack(const lanczos *lz, const double *s, double sigma, double *evals,
-                   double *evecs) {
-  for (int j = 0; j < lz->nev; j++) {
-    int src = lz->nev - 1 - j;
-    evals[j] = sigma + 1.0 / lz->d[src];
-    const double *z = lz->Z + (size_t)src * lz->n;
-    double *x = evecs + (size_t)j * lz->n;
-    for (int i = 0; i < lz->n; i++) x[i] = z[i] / s[i];
+/* Small problems: dense eigenvalues of S^-1 A S^-1. */
+static int dense_smallest(const sm_csc *A, const double *s, int nev, double *evals,
+                          double *evecs, sm_error *err) {
+  int n = A->n;
+  double *C = calloc((size_t)n * n, sizeof *C), *ev = malloc((size_t)n * sizeof *ev);
+  int *isuppz = malloc((size_t)2 * n * sizeof *isuppz);
+  if (!C || !ev || !isuppz) {
+    free(C); free(ev); free(isuppz);
+    return sm_error_set(err, SM_ENOMEM, "eigensolver: out of memory (dense %d x %d)", n, n);
   }
+  for (int j = 0; j < n; j++)
+    for (int32_t p = A->colptr[j]; p < A->colptr[j + 1]; p++) {
+      int i = A->rowind[p];
+      if (i >= j) C[(size_t)j * n + i] += A->val[p] / (s[i] * s[j]);
+    }
+  int found = 0;
+  int info = LAPACKE_dsyevr(LAPACK_COL_MAJOR, 'V', 'I', 'L', n, C, n, 0.0, 0.0, 1, nev, 0.0,
+                            &found, ev, evecs, n, isuppz);
+  int rc = SM_OK;
+  if (info || found != nev)
+    rc = sm_error_set(err, SM_ENUMERIC, "dense eigensolver failed (info = %d)", info);
+  for (int j = 0; !rc && j < nev; j++) {
+    evals[j] = ev[j];
+    for (int i = 0; i < n; i++) evecs[(size_t)j * n + i] /= s[i];
+  }
+  free(C); free(ev); free(isuppz);
+  return rc;
+}
+
+/* Block size and basis size. Measured (elastic k = 100, nev = 112, one BLAS thread, CPU
+ * seconds of the iteration on a loaded 2-core machine; "ncv" = basis before a restart):
+ *   homerA (15k unknowns)   b = 8, ncv 2 nev: 392 solves, 1.04 s;  b = 8, 3 nev: 344, 0.91;
+ *                           b = 16, 2 nev: 528, 1.08;  b = 16, 3 nev: 496, 1.06
+ *   headA (45k unknowns)    b = 8, 3 nev: 344, 3.01;  b = 12: 396, 3.14;  b = 16: 480, 3.27;
+ *                           b = 8, 2.5 nev: 384, 3.15
+ * (ARPACK, one vector at a time, ncv = 2 nev + 1: 283 solves, 2.3 s wall unloaded on
+ * homerA.) Wider blocks need more vectors (a block Krylov space of dimension m has degree
+ * m / b) but each costs less (the factor is read once per block); the totals are flat
+ * from 8 to 16. Robustness decides: b = 4 loses copies of the exactly 10-fold eigenvalues
+ * of two identical spheres (test_basis), b = 8 finds them only through rounding, b = 12
+ * captures them by construction. A basis of 3 nev saves a restart over 2 nev; its memory,
+ * 8 n (3 nev + b) bytes, is 0.4 GB on a 47k-vertex elastic problem. */
+static void sizes(const sm_eigs_opts *o, int *b, int *mmax, int *keep) {
+  int bb = o->block > 0 ? o->block : 12;
+  if (bb > 64) bb = 64; /* the b x b workspaces live on the stack */
+  if (bb > o->nev) bb = o->nev < 4 ? 4 : o->nev;
+  int m = o->ncv > 0 ? o->ncv : 3 * o->nev;
+  int kp = o->nev + bb;
+  if (m < kp + 2 * bb) m = kp + 2 * bb;
+  m = (m + bb - 1) / bb * bb;
+  *b = bb;
+  *mmax = m;
+  *keep = kp;
 }
 
 int sm_eigs_smallest(const sm_csc *A, const double *D, const sm_eigs_opts *o, double *evals,
@@ -225,54 +475,54 @@ int sm_eigs_smallest(const sm_csc *A, const double *D, const sm_eigs_opts *o, do
                         "problem", o->nev, n, n);
   if (!(o->sigma < 0))
     return sm_error_set(err, SM_EINVAL, "eigensolver: shift %g must be negative", o->sigma);
-  /* ncv = 2 nev + 1. A narrower space (1.3 nev) saved 15% of the solves on homerA but
-   * missed one copy of an 11-fold eigenvalue of the sphere: single-vector Lanczos finds
-   * repeated eigenvalues only through rounding, and needs room to do it.
-   * Re-measured (homerA elastic k = 100, nev 112, one BLAS thread, load ~4): ncv/nev =
-   * 1.3: 248 solves, 7 restarts; 1.5: 253, 4; 1.75: 239, 2 (1.6 s CPU against 2.3 s);
-   * 2.0: 283, 2; 2.5: 281, 1. On the koala 1.75 saved nothing (281 solves either way,
-   * 28.7 against 29.6 s CPU). 1.5 nev fails test_repeated_eigenvalues (icosphere k = 50),
-   * so the width stays: robustness first. Even 2 nev + 1 loses a copy of an exactly
-   * 10-fold eigenvalue (two identical spheres); only a block method or a deflated
-   * re-check would make that safe. */
-  int ncv = o->ncv > 0 ? o->ncv : 2 * o->nev + 1;
-  if (ncv < o->nev + 2) ncv = o->nev + 2;
-  if (ncv > n) ncv = n;
+  int b, mmax, keep;
+  sizes(o, &b, &mmax, &keep);
+
+  double *s = malloc((size_t)n * sizeof *s);
+  if (!s) return sm_error_set(err, SM_ENOMEM, "eigensolver: out of memory (n = %d)", n);
+  for (int32_t i = 0; i < n; i++) {
+    if (!(D[i] > 0)) {
+      free(s);
+      return sm_error_set(err, SM_ENUMERIC, "eigensolver: mass %d is %g, not positive", i, D[i]);
+    }
+    s[i] = sqrt(D[i]);
+  }
+  if (n < mmax + 2 * b) {
+    double t0 = sm_now();
+    int rc = dense_smallest(A, s, o->nev, evals, evecs, err);
+    st->t_solve = sm_now() - t0;
+    free(s);
+    return rc;
+  }
 
   solver sv;
   memset(&sv, 0, sizeof sv);
   sv.n = n;
+  sv.s = s;
   cholmod_start(&sv.c);
   sv.c.print = 0;
   sv.c.error_handler = NULL;
   set_ordering(&sv.c, o->ordering);
-  double *s = malloc((size_t)n * sizeof *s);
-  sv.tmp = malloc((size_t)n * sizeof *sv.tmp);
-  lanczos lz;
-  int rc = lanczos_alloc(&lz, n, o->nev, ncv);
-  if (rc || !s || !sv.tmp) {
-    rc = sm_error_set(err, SM_ENOMEM, "eigensolver: out of memory (n = %d, ncv = %d)", n, ncv);
+  sv.tmp = malloc((size_t)n * b * sizeof *sv.tmp);
+  bks w;
+  int rc = bks_alloc(&w, n, o->nev, b, mmax, keep);
+  if (rc || !sv.tmp) {
+    rc = sm_error_set(err, SM_ENOMEM, "eigensolver: out of memory (n = %d, basis %d)", n, mmax);
     goto done;
   }
-  for (int32_t i = 0; i < n; i++) {
-    if (!(D[i] > 0)) {
-      rc = sm_error_set(err, SM_ENUMERIC, "eigensolver: mass %d is %g, not positive", i, D[i]);
-      goto done;
-    }
-    s[i] = sqrt(D[i]);
-  }
-  sv.s = s;
-  sv.B = (cholmod_dense){.nrow = (size_t)n, .ncol = 1, .nzmax = (size_t)n, .d = (size_t)n,
-                         .x = sv.tmp, .xtype = CHOLMOD_REAL, .dtype = CHOLMOD_DOUBLE};
   if ((rc = factor(&sv, A, D, o->sigma, st, err))) goto done;
   double t0 = sm_now();
-  pthread_mutex_lock(&arpack_lock);
-  rc = run_lanczos(&sv, &lz, o, st, err);
-  pthread_mutex_unlock(&arpack_lock);
-  if (!rc) unpack(&lz, s, o->sigma, evals, evecs);
+  rc = run_bks(&sv, &w, o, st, err);
+  if (!rc) /* theta descending -> lambda ascending; x = S^-1 z */
+    for (int j = 0; j < o->nev; j++) {
+      evals[j] = o->sigma + 1.0 / w.th[j];
+      const double *z = w.V + (size_t)j * n;
+      double *x = evecs + (size_t)j * n;
+      for (int32_t i = 0; i < n; i++) x[i] = z[i] / s[i];
+    }
   st->t_solve = sm_now() - t0;
 done:
-  lanczos_free(&lz);
+  bks_free(&w);
   free(s);
   free(sv.tmp);
   cholmod_free_dense(&sv.X, &sv.c);

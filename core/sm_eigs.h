@@ -1,22 +1,27 @@
 /* sm_eigs: the smallest eigenpairs of a sparse symmetric generalized problem
  *     A x = lambda D x,   A symmetric PSD (lower triangle in an sm_csc), D diagonal > 0,
- * by shift-invert Lanczos (ARPACK dsaupd) over a sparse Cholesky factor (CHOLMOD) of
- * K = A - sigma D, with sigma < 0 so that K is SPD even when A is singular.
+ * by block shift-invert Lanczos with thick restarts (block Krylov-Schur, sm_eigs.c) over a
+ * sparse Cholesky factor (CHOLMOD) of K = A - sigma D, with sigma < 0 so that K is SPD
+ * even when A is singular.
  *
  * Why this formulation: with s = sqrt(D), the operator s K^-1 s is symmetric in the plain
- * inner product and has eigenvalues 1/(lambda - sigma), so ARPACK runs in its standard
- * mode on it ('LA' = largest algebraic = smallest lambda) and the eigenvectors come back
- * D-orthonormal after scaling by 1/s. No B-inner products, no explicit inverse.
+ * inner product and has eigenvalues 1/(lambda - sigma), so the iteration is a standard
+ * symmetric one on it (largest = smallest lambda) and the eigenvectors come back
+ * D-orthonormal after scaling by 1/s. No B-inner products, no explicit inverse. Each step
+ * applies the operator to a block of `block` vectors with one multi-right-hand-side
+ * solve, so eigenvalues of multiplicity up to `block` are found directly.
  *
  * Contract
  *   A and D are borrowed, read only. evals (nev) and evecs (n*nev, column-major) are
  *   caller-provided outputs; eigenvalues ascending, eigenvectors D-orthonormal.
- *   ARPACK keeps state in Fortran SAVE variables and is not re-entrant: calls are
- *   serialized by a process-wide mutex inside this module (CHOLMOD factorization runs
- *   outside it). The cancel callback (may be NULL) is polled every iteration.
- *   Errors: SM_EINVAL (sizes), SM_ENOMEM, SM_ENUMERIC (K not positive definite, ARPACK
- *   failure or no convergence within maxiter restarts / maxsolves operator applications;
- *   the message says which), SM_ECANCELED.
+ *   Re-entrant: no global or static state (CHOLMOD runs on a cholmod_common of the call,
+ *   LAPACK/BLAS on the call's buffers), so any number of calls may run in parallel on
+ *   different threads; each uses the BLAS threading the caller configured.
+ *   The cancel callback (may be NULL) is polled once per block step.
+ *   Problems too small for the Krylov basis (n < ncv + 2 block) are solved densely.
+ *   Errors: SM_EINVAL (sizes), SM_ENOMEM, SM_ENUMERIC (K not positive definite, a LAPACK
+ *   failure, or no convergence within maxiter restarts / maxsolves operator applications;
+ *   the message says which and how many eigenpairs had converged), SM_ECANCELED.
  */
 #ifndef SM_EIGS_H
 #define SM_EIGS_H
@@ -29,20 +34,23 @@ enum { SM_ORDER_DEFAULT = 0, SM_ORDER_AMD = 1, SM_ORDER_METIS = 2, SM_ORDER_NESD
 typedef struct sm_eigs_opts {
   int nev;          /* eigenpairs wanted */
   double sigma;     /* shift, < smallest eigenvalue */
-  double tol;       /* ARPACK relative tolerance (0 = 1e-9) */
-  int ncv;          /* Lanczos vectors (0 = automatic) */
+  double tol;       /* relative residual: ||T z - theta z|| <= tol theta (0 = 1e-9) */
+  int ncv;          /* Krylov basis size before a restart (0 = automatic: 3 nev, at
+                     * least nev + 3 block, rounded up to a multiple of block) */
   int maxiter;      /* restarts (0 = automatic: 100) */
-  int maxsolves;    /* operator applications (0 = automatic: 10 ncv + 100); with maxiter
-                     * it bounds the time a failing run takes (normal runs need 1-2 ncv) */
+  int maxsolves;    /* operator applications, counted per vector (0 = automatic:
+                     * 10 ncv + 100); with maxiter it bounds the time a failing run takes
+                     * (normal runs need 1-2 ncv) */
   int ordering;     /* fill-reducing ordering: SM_ORDER_* (0 = CHOLMOD's default choice) */
   int (*cancel)(void *ud);
   void *cancel_ud;
+  int block;        /* vectors per block (0 = automatic: 12; at most 64) */
 } sm_eigs_opts;
 
 typedef struct sm_eigs_stats {
-  double t_analyze, t_factor, t_solve; /* seconds: ordering, numeric factor, Lanczos */
+  double t_analyze, t_factor, t_solve; /* seconds: ordering, numeric factor, iteration */
   double t_op;      /* part of t_solve spent applying the operator (triangular solves) */
-  int nsolves;      /* operator applications */
+  int nsolves;      /* operator applications (vectors; a block of b counts b) */
   int restarts;
   double factor_nnz;
 } sm_eigs_stats;

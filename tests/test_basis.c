@@ -56,17 +56,17 @@ static void test_lb_sphere(void) {
   sm_mesh_destroy(m);
 }
 
-/* Repeated eigenvalues against a dense reference, at the solver's default ncv.
- * Single-vector Lanczos resolves a repeated eigenvalue only through rounding, so a too
- * narrow Lanczos space returns one copy too few (and the next distinct eigenvalue in its
- * place). The icosphere's LB spectrum has exact multiplicities up to 5 (icosahedral
- * symmetry) inside near-degenerate clusters of 2l + 1; k = 50 ends inside the l = 7
- * cluster, k = 100 at the end of l = 9. Measured: ncv = 1.5 k fails here (k = 50:
- * lambda_48 = 51.6 returned for 39.8), the default 2 k + 1 passes. Known limit, not
- * tested because it fails at the default too: two identical spheres side by side (exact
- * 10-fold multiplicities) lose a copy at k = 50 and k = 100 for tol 1e-9 and 1e-12. */
-static void test_repeated_eigenvalues(void) {
-  sm_mesh *m = tm_icosphere(3); /* 642 vertices: a dense reference is cheap */
+/* Repeated eigenvalues against a dense reference, at the solver's default sizes.
+ * Single-vector Lanczos (ARPACK, before the block solver) resolved a repeated eigenvalue
+ * only through rounding, so a too narrow Lanczos space returned one copy too few (and the
+ * next distinct eigenvalue in its place): ncv = 1.5 k failed on the icosphere (k = 50:
+ * lambda_48 = 51.6 returned for 39.8), and even 2 k + 1 lost a copy of the exactly
+ * 10-fold eigenvalues of two identical spheres side by side at k = 50 and 100. A block of
+ * b vectors captures multiplicities up to b directly. The icosphere's LB spectrum has
+ * exact multiplicities up to 5 (icosahedral symmetry) inside near-degenerate clusters of
+ * 2l + 1; k = 50 ends inside the l = 7 cluster, k = 100 at the end of l = 9; two copies
+ * double every multiplicity. */
+static void check_repeated(sm_mesh *m, const char *what) {
   int n = m->nv;
   sm_error err;
   sm_csc *W;
@@ -86,12 +86,13 @@ static void test_repeated_eigenvalues(void) {
     REQUIRE(ev && X);
     sm_eigs_opts o = {.nev = k, .sigma = -1e-6 * ref[n - 1]}; /* default tol and ncv */
     int rc = sm_eigs_smallest(W, mass, &o, ev, X, NULL, &err);
-    CHECK_MSG(rc == 0, "k=%d: %s", k, rc ? err.msg : "");
+    CHECK_MSG(rc == 0, "%s k=%d: %s", what, k, rc ? err.msg : "");
     double worst = 0;
     int at = -1;
     for (int i = 0; !rc && i < k; i++)
       if (fabs(ev[i] - ref[i]) > worst) worst = fabs(ev[i] - ref[i]), at = i;
-    CHECK_MSG(worst <= 1e-8 * ref[k - 1], "k=%d: lambda_%d off by %g (%g vs %g)", k, at, worst,
+    CHECK_MSG(worst <= 1e-8 * ref[k - 1], "%s k=%d: lambda_%d off by %g (%g vs %g)", what, k,
+              at, worst,
               at >= 0 ? ev[at] : 0, at >= 0 ? ref[at] : 0);
     free(ev);
     free(X);
@@ -100,6 +101,14 @@ static void test_repeated_eigenvalues(void) {
   free(mass);
   free(C);
   free(ref);
+}
+
+static void test_repeated_eigenvalues(void) {
+  sm_mesh *m = tm_icosphere(3); /* 642 vertices: a dense reference is cheap */
+  check_repeated(m, "icosphere");
+  sm_mesh *two = tm_union(m, m, 3.0); /* exactly 10-fold eigenvalues */
+  check_repeated(two, "two icospheres");
+  sm_mesh_destroy(two);
   sm_mesh_destroy(m);
 }
 
