@@ -6,9 +6,19 @@
  * child's user + system time (getrusage via wait4): on a shared machine it moves less
  * with the load than the wall times do; the load average is printed before and after.
  * Usage: bench_basis [-r reps] [-k k] [--eta e] [mesh ...]   (default: homerA, headA, koala)
+ *
+ * --parallel [--kind lb|elastic] [-t threads] [mesh ...]: throughput of basis computations
+ * on several threads (default 2) against the same shapes one after another, in the same
+ * process and run (default shapes: homerA, homerB, lion, cat; elastic). The meshes are
+ * read, cleaned and normalized once; each repetition times the sequential pass and the
+ * parallel pass (in alternating order, so that a drift of the machine's load touches
+ * both), and the medians and the median of the per-repetition ratios are printed. With a
+ * process-wide lock in the eigensolver (ARPACK, before issue 13) the ratio stays near 1.
  */
 #define _DEFAULT_SOURCE /* wait4: per-child peak memory */
 #include <cblas.h> /* OpenBLAS: openblas_set_num_threads */
+#include <pthread.h>
+#include <stdatomic.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -122,11 +132,109 @@ static void print_load(const char *when) {
     printf("load average %s: %.2f %.2f %.2f\n", when, la[0], la[1], la[2]);
 }
 
+/* ---- --parallel ---------------------------------------------------------------------- */
+
+typedef struct par_job {
+  sm_mesh **meshes;
+  int nm, kind, k;
+  double eta;
+  atomic_int next, failed;
+} par_job;
+
+static void *par_worker(void *arg) {
+  par_job *j = arg;
+  for (int i; (i = atomic_fetch_add(&j->next, 1)) < j->nm;) {
+    sm_basis_opts o;
+    sm_basis *b = NULL;
+    sm_error err;
+    sm_basis_opts_default(&o, j->kind, j->k);
+    if (j->eta > 0 && j->kind == SM_BASIS_ELASTIC) o.eta = j->eta;
+    if (sm_basis_compute(j->meshes[i], &o, &b, &err)) {
+      fprintf(stderr, "basis of shape %d: %s\n", i, err.msg);
+      atomic_store(&j->failed, 1);
+    }
+    sm_basis_destroy(b);
+  }
+  return NULL;
+}
+
+/* Wall seconds to compute the bases of all meshes on nthreads threads (1: this thread). */
+static double par_pass(sm_mesh **meshes, int nm, int kind, int k, double eta, int nthreads,
+                       int *failed) {
+  par_job j = {.meshes = meshes, .nm = nm, .kind = kind, .k = k, .eta = eta};
+  atomic_init(&j.next, 0);
+  atomic_init(&j.failed, 0);
+  pthread_t th[16];
+  int started = 0;
+  double t0 = sm_now();
+  for (int t = 1; t < nthreads && t < 16; t++)
+    if (pthread_create(&th[started], NULL, par_worker, &j) == 0) started++;
+  par_worker(&j);
+  for (int t = 0; t < started; t++) pthread_join(th[t], NULL);
+  double dt = sm_now() - t0;
+  if (atomic_load(&j.failed)) *failed = 1;
+  return dt;
+}
+
+static double median_d(double *v, int n) {
+  qsort(v, (size_t)n, sizeof *v, cmp_double);
+  return n % 2 ? v[n / 2] : 0.5 * (v[n / 2 - 1] + v[n / 2]);
+}
+
+static void print_load(const char *when);
+
+static int bench_parallel(const char **paths, int nm, int kind, int k, double eta, int reps,
+                          int nthreads) {
+  sm_mesh *meshes[32];
+  int32_t total_v = 0;
+  for (int i = 0; i < nm; i++) {
+    sm_error err;
+    sm_mesh *raw = NULL;
+    meshes[i] = NULL;
+    if (sm_mesh_read_file(paths[i], NULL, &raw, &err) ||
+        sm_mesh_clean(raw, NULL, &meshes[i], NULL, &err) || sm_mesh_normalize(meshes[i], &err)) {
+      fprintf(stderr, "%s: %s\n", paths[i], err.msg);
+      sm_mesh_destroy(raw);
+      for (int j = 0; j <= i; j++) sm_mesh_destroy(meshes[j]);
+      return 1;
+    }
+    sm_mesh_destroy(raw);
+    total_v += meshes[i]->nv;
+  }
+  if (reps > 64) reps = 64;
+  double seq[64], par[64], ratio[64];
+  int failed = 0;
+  printf("%s bases, k = %d, %d shapes (%d vertices in all), %d repetitions, 1 vs %d threads "
+         "(one BLAS thread each)\n", kind == SM_BASIS_LB ? "LB" : "elastic", k, nm, total_v,
+         reps, nthreads);
+  print_load("before");
+  for (int r = 0; r < reps; r++) {
+    if (r % 2 == 0) {
+      seq[r] = par_pass(meshes, nm, kind, k, eta, 1, &failed);
+      par[r] = par_pass(meshes, nm, kind, k, eta, nthreads, &failed);
+    } else {
+      par[r] = par_pass(meshes, nm, kind, k, eta, nthreads, &failed);
+      seq[r] = par_pass(meshes, nm, kind, k, eta, 1, &failed);
+    }
+    ratio[r] = seq[r] / par[r];
+    printf("  run %d: sequential %.3f s, %d threads %.3f s, ratio %.2f\n", r + 1, seq[r],
+           nthreads, par[r], ratio[r]);
+    fflush(stdout);
+  }
+  print_load("after");
+  printf("median: sequential %.3f s, %d threads %.3f s, ratio of medians %.2f, median ratio "
+         "%.2f%s\n", median_d(seq, reps), nthreads, median_d(par, reps),
+         median_d(seq, reps) / median_d(par, reps), median_d(ratio, reps),
+         failed ? " (some bases FAILED)" : "");
+  for (int i = 0; i < nm; i++) sm_mesh_destroy(meshes[i]);
+  return failed;
+}
+
 int main(int argc, char **argv) {
   /* One BLAS thread, as in the shapematch CLI (see its main for the measurements), unless
    * OPENBLAS_NUM_THREADS is set: the children inherit the setting. */
   if (!getenv("OPENBLAS_NUM_THREADS")) openblas_set_num_threads(1);
-  int reps = 5, k = 100;
+  int reps = 5, k = 100, parallel = 0, nthreads = 2, kind = SM_BASIS_ELASTIC;
   double eta = 0;
   const char *meshes[32];
   int nm = 0;
@@ -134,7 +242,21 @@ int main(int argc, char **argv) {
     if (!strcmp(argv[i], "-r") && i + 1 < argc) reps = atoi(argv[++i]);
     else if (!strcmp(argv[i], "-k") && i + 1 < argc) k = atoi(argv[++i]);
     else if (!strcmp(argv[i], "--eta") && i + 1 < argc) eta = atof(argv[++i]);
+    else if (!strcmp(argv[i], "--parallel")) parallel = 1;
+    else if (!strcmp(argv[i], "-t") && i + 1 < argc) nthreads = atoi(argv[++i]);
+    else if (!strcmp(argv[i], "--kind") && i + 1 < argc)
+      kind = !strcmp(argv[++i], "lb") ? SM_BASIS_LB : SM_BASIS_ELASTIC;
     else if (nm < 32) meshes[nm++] = argv[i];
+  }
+  if (parallel) {
+    if (!nm) {
+      meshes[nm++] = SM_DATA_DIR "/elasticbasis_cartoon_pairs/homerA.obj";
+      meshes[nm++] = SM_DATA_DIR "/elasticbasis_cartoon_pairs/homerB.obj";
+      meshes[nm++] = SM_DATA_DIR "/pyfm_cat_lion/lion-00.off";
+      meshes[nm++] = SM_DATA_DIR "/pyfm_cat_lion/cat-00.off";
+    }
+    if (nthreads < 1 || nthreads > 16) nthreads = 2;
+    return bench_parallel(meshes, nm, kind, k, eta, reps, nthreads);
   }
   if (!nm) {
     meshes[nm++] = SM_DATA_DIR "/elasticbasis_cartoon_pairs/homerA.obj";

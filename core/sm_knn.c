@@ -83,7 +83,16 @@ struct sm_knn {
   struct FLANNParameters fp;
 };
 
-/* FLANN's C API sets its global logger level (and maybe the C rand seed) on every call. */
+/* FLANN's C API is not re-entrant: every entry point (build, query, free) starts with
+ * init_flann_parameters(), which writes the library's process-wide logger level
+ * (flann::Logger, a static) and, for random_seed > 0, reseeds the C rand() state. Two
+ * threads in it at once race on that static even when they write the same value (a data
+ * race for ThreadSanitizer and for the C++ memory model), so the calls stay serialized.
+ * Re-checked for issue 13 (flann 1.9.2's src/cpp/flann/flann.cpp); the search itself is
+ * const on the index, so only this wrapper forces the lock: kd-tree queries of concurrent
+ * matches take turns here (brute-force queries, d >= SM_KNN_CROSSOVER_D, do not). Lifting
+ * it needs FLANN's C++ API (flann::Index::knnSearch, no logger write) behind a core/io
+ * adapter. */
 static pthread_mutex_t flann_lock = PTHREAD_MUTEX_INITIALIZER;
 
 double sm_knn_dist2(const double *x, const double *y, int d) {

@@ -16,6 +16,11 @@
  *     2. pool->mu    (sm_srv_pool: job queue; cv for idle workers)
  *     3. pool->done_mu (completion list; the loop drains it after the eventfd fires)
  *     In practice none of them nests: each is taken and released within one function.
+ *   Inside core/, what workers run in parallel: basis computations (the eigensolver,
+ *     sm_eigs.h, has no global state since issue 13: N workers run N eigensolves at once),
+ *     descriptors, Sinkhorn, ZoomOut's BLAS. One process-wide lock remains: FLANN's C API
+ *     (sm_knn.c, its global logger), held for each kd-tree build/query/free, so the
+ *     kd-tree nearest-neighbour queries of concurrent matches take turns.
  *   Atomics: sm_metrics counters (relaxed), job->cancel (set by the loop on CANCEL or
  *   disconnect or drain timeout, read by the core's cancel callback on a worker).
  *   Lifetime: a job holds a plain pointer to its connection, used only by the loop thread
