@@ -137,6 +137,19 @@ def section_classify(out, md):
         md.append(f"**{title}**\n")
         md.append(table(head, [cls_row(c, r, key) for c, r in cl["configs"].items()]))
         md.append("\n")
+    if all("retrieval_8" in r for r in cl["configs"].values()):
+        md.append("**Retrieval** (SHREC / Princeton Shape Benchmark conventions: every shape "
+                  "queries the other 39; NN = first answer of the query's class, FT / ST = "
+                  "recall in the first C - 1 / 2 (C - 1) answers for a class of C shapes, DCG "
+                  "normalized by the ideal ranking, mAP = mean average precision)\n")
+        rows = []
+        for c, r in cl["configs"].items():
+            a, b = r["retrieval_8"], r["retrieval_6"]
+            rows.append([bold_default(c), a["nn"], a["ft"], a["st"], a["dcg"], a["map"],
+                         b["nn"], b["ft"], b["st"], b["dcg"], b["map"]])
+        md.append(table(["config", "NN", "FT", "ST", "DCG", "mAP", "NN (6)", "FT (6)",
+                         "ST (6)", "DCG (6)", "mAP (6)"], rows))
+        md.append("\n(6): humans merged into one class.\n\n")
     md.append("**Distances within and across classes (8 classes)**\n")
     rows = []
     for c, r in cl["configs"].items():

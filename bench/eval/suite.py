@@ -437,6 +437,38 @@ def knn_scores(D, labels):
     return out
 
 
+def retrieval_scores(D, labels):
+    """Retrieval figures with the conventions of the SHREC tracks and the Princeton Shape
+    Benchmark (Shilane et al. 2004): every shape queries the others (itself excluded),
+    ranked by distance (ties by index, as nn_predict); with C the query's class size,
+    nearest neighbour = share of queries whose first answer is of their class, first tier =
+    recall in the first C - 1 answers, second tier = recall in the first 2 (C - 1), DCG =
+    sum of G_i / log2(i) (G_1 undivided; G_i = 1 for a relevant answer) over the ideal
+    DCG, mAP = mean over queries of the precision at each relevant answer's rank, averaged.
+    Means over all queries; classes of one shape (nothing to retrieve) are left out."""
+    D = np.asarray(D, dtype=float)
+    n = len(labels)
+    nn = ft = st = dcg = ap = 0.0
+    nq = 0
+    for q in range(n):
+        order = sorted((j for j in range(n) if j != q), key=lambda j: (D[q][j], j))
+        rel = np.array([labels[j] == labels[q] for j in order], dtype=float)
+        R = int(rel.sum())
+        if R == 0:
+            continue
+        nq += 1
+        nn += rel[0]
+        ft += rel[:R].sum() / R
+        st += rel[:2 * R].sum() / R
+        disc = np.ones(len(rel))
+        disc[1:] = 1 / np.log2(np.arange(2, len(rel) + 1))
+        dcg += (rel * disc).sum() / disc[:R].sum()
+        hits = np.flatnonzero(rel)
+        ap += np.mean((np.arange(len(hits)) + 1) / (hits + 1))
+    return {"nn": nn / nq, "ft": ft / nq, "st": st / nq, "dcg": dcg / nq, "map": ap / nq,
+            "queries": nq}
+
+
 def intra_inter(D, labels):
     n = len(labels)
     intra = [D[i][j] for i in range(n) for j in range(i + 1, n) if labels[i] == labels[j]]
@@ -456,6 +488,8 @@ def score_classification(result):
             D = np.nan_to_num(D, nan=2.0)
         r["classes_8"] = knn_scores(D, labels)
         r["classes_6"] = knn_scores(D, merged)
+        r["retrieval_8"] = retrieval_scores(D, labels)
+        r["retrieval_6"] = retrieval_scores(D, merged)
         r["distances_8"] = intra_inter(D, labels)
 
 
