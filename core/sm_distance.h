@@ -1,19 +1,34 @@
-/* sm_distance: a cosine distance between two shapes, computed after matching them
- * ("correspondence stability", algorithm.md §7). In [0, 2]; 0 for a shape against itself
- * in any vertex order, scale or rigid pose (shapes are at unit area); symmetric.
+/* sm_distance: a distance between two shapes, computed after matching them
+ * ("correspondence stability", algorithm.md §7). In [0, 2) (the shipped definition: [0, 1));
+ * 0 for a shape against itself in any vertex order, scale or rigid pose (shapes are at unit
+ * area); symmetric.
  *
- * Definition (what the product ships):
- *   Features. For each vertex, the log heat kernel signature at S = 8 fixed times
- *   t_s = 10^(-3 + 2 s / (S - 1)) (s = 0..S-1, unit area), computed in the LB basis:
- *   h(v, t) = sum_i exp(-t lambda_i) phi_i(v)^2; each column is centered by its area-
- *   weighted mean, so what is compared is the pattern over the surface, not its level.
- *   Point term (X -> Y). a = the features of X at every vertex, b = the features of Y at
- *   T_xy(v), both weighted by sqrt(m_v) of X; d_xy = 1 - a.b / (|a| |b|). d_yx likewise
- *   with T_yx on Y.
- *   Spectral terms. The centered log eigenvalues log lambda_1..log lambda_K (positive
- *   eigenvalues only, K = 50 or fewer if a basis is smaller) of the LB basis, and of the
- *   elastic basis when both shapes have one: 1 - cos of the two vectors.
- *   Total = mean of d_xy, d_yx and the spectral terms present.
+ * Shipped definition (issue 11; docs/RESULTS.md section 3 has the measurements):
+ *   Spectral term S. The RMS over i = 1..K (K = 50, or fewer if a basis is smaller) of
+ *   log(lambda_i(X) / lambda_i(Y)), the non-zero LB eigenvalues in order, both shapes at
+ *   unit area (sm_spectrum_ratio_distance). Isometry-invariant, so blind to pose; the
+ *   overall level of the log eigenvalues is kept (the paper-style term below centers it
+ *   away, and with it the proportions that separate the three human classes of tosca).
+ *   Map terms M_xy, M_yx. Per vertex v of X, the RMS over 8 times t_s = 10^(-3 + 2s/7) of
+ *   log h_X(v, t) - log h_Y(T_xy(v), t), h the heat kernel signature in the LB basis
+ *   (h(v, t) = sum_i exp(-t lambda_i) phi_i(v)^2, not centered); M_xy = its area-weighted
+ *   MEDIAN over X, so the vertices a map gets wrong (up to half the area) cannot move it.
+ *   M_yx likewise through T_yx.
+ *   Each term is reported as 1 - exp(-term) (same order, equal to first order, < 1).
+ *   Total = (S + w (M_xy + M_yx) / 2) / (1 + w), w = map_weight = SM_DIST_MAP_WEIGHT = 0:
+ *   measured on tosca_classification_5k (bench/eval/dist_study.py, maps of the suite's
+ *   distance preset), every w > 0 lowered the leave-one-out 1-NN accuracy with the default
+ *   maps (w = 0: 1.000, 0.25: 0.975, 0.5-4: 0.950) and every retrieval figure, so the
+ *   shipped total is the spectral term; the map terms are still computed and reported
+ *   (point_xy, point_yx) and w is an option (sm_distance_opts).
+ *   spectrum_elastic = -1 (the elastic spectrum separated the classes worse: 0.75 LOO).
+ *
+ * Paper-style definition (SM_DIST_PAPER; the shipped one before issue 11): features = the
+ * log HKS above, each column centered by its area-weighted mean; point term X -> Y =
+ * 1 - cos of X's features and Y's features pulled back through T_xy, weighted by the
+ * area of X's vertices; spectral terms = 1 - cos of the centered log eigenvalues (first 50
+ * non-zero) of the LB basis and of the elastic basis when both shapes have one; total =
+ * mean of d_xy, d_yx and the spectral terms present.
  *
  * Contract: shapes (sm_match.h) and maps (cleaned indices: T_xy has x's nv entries, T_yx
  * y's) are borrowed, read only. Thread-safe. Errors: SM_EINVAL, SM_ENOMEM.
@@ -33,8 +48,27 @@ typedef struct sm_distance_parts {
   double total;
 } sm_distance_parts;
 
+enum sm_distance_def {
+  SM_DIST_SHIPPED = 0, /* the definition above */
+  SM_DIST_PAPER = 1    /* the paper-style definition shipped before issue 11 (below) */
+};
+#define SM_DIST_MAP_WEIGHT 0.0
+
+typedef struct sm_distance_opts {
+  int def;           /* enum sm_distance_def */
+  double map_weight; /* shipped: w, the map term's weight (>= 0; 0 = spectrum only) */
+  int spectrum_k;    /* shipped: K, eigenvalues compared (<= 0: all both shapes have) */
+} sm_distance_opts;
+
+void sm_distance_opts_default(sm_distance_opts *o);
+
+/* The shipped definition (sm_distance_opts_default). */
 int sm_shape_distance(const sm_shape *x, const sm_shape *y, const int32_t *T_xy,
                       const int32_t *T_yx, sm_distance_parts *out, sm_error *err);
+/* Either definition; o NULL = defaults. */
+int sm_shape_distance_ex(const sm_shape *x, const sm_shape *y, const int32_t *T_xy,
+                         const int32_t *T_yx, const sm_distance_opts *o,
+                         sm_distance_parts *out, sm_error *err);
 
 /* Adjusts matching options for a distance: both maps (want_yx), no tip search (it fires
  * on the low-confidence maps of pairs of different classes, at one match per hypothesis),
@@ -50,5 +84,10 @@ void sm_distance_match_opts(sm_match_opts *o);
 /* The spectral term alone (no map needed; a cheap pre-filter for retrieval): 1 - cos of
  * the centered log positive eigenvalues of a and b, the first min(50, ...) of them. */
 double sm_spectrum_distance(const sm_basis *a, const sm_basis *b);
+
+/* The shipped spectral term before squashing: the RMS over i = 1..K of
+ * log(lambda_i(a) / lambda_i(b)), non-zero eigenvalues in order (K <= 0 or above what both
+ * have: all of them). Bases of shapes at unit area (sm_mesh_normalize); >= 0. */
+double sm_spectrum_ratio_distance(const sm_basis *a, const sm_basis *b, int K);
 
 #endif
