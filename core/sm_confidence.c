@@ -65,3 +65,26 @@ int sm_map_confidence(const sm_mesh *X, const sm_mesh *Y, const double *mass_x,
   out->confidence = o * out->continuity * out->cycle;
   return SM_OK;
 }
+
+int sm_map_distortion(sm_edge_paths *paths_y, const int32_t *T, const int32_t *src,
+                      const double *src_dist, int ns, int ld, double *out, sm_error *err) {
+  if (!paths_y || !T || !src || !src_dist || !out || ns < 2 || ld < ns)
+    return sm_error_set(err, SM_EINVAL, "distortion: missing argument");
+  int32_t ny = sm_edge_paths_size(paths_y);
+  double *dy = malloc((size_t)ny * sizeof *dy);
+  if (!dy) return sm_error_set(err, SM_ENOMEM, "distortion: out of memory");
+  double num = 0, den = 0;
+  int rc = SM_OK;
+  for (int a = 0; !rc && a < ns; a++) {
+    if ((rc = sm_edge_paths_run(paths_y, T[src[a]], dy, err))) break;
+    for (int b = 0; b < ns; b++) {
+      double dx = src_dist[(size_t)a * ld + b], d = dy[T[src[b]]];
+      if (b == a || !isfinite(dx) || !isfinite(d)) continue;
+      num += fabs(dx - d);
+      den += dx;
+    }
+  }
+  free(dy);
+  if (!rc) *out = den > 0 ? num / den : 0;
+  return rc;
+}

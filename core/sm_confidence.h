@@ -15,8 +15,19 @@
  * field's threshold for a failed correspondence, 0.1). A correct self-map scores 1 on each
  * factor; a scrambled map scores near 0 on each.
  *
+ * Geodesic distortion (sm_map_distortion): how far T is from an isometry, measured on
+ * samples s_a of X with edge-path distances d (unit area):
+ *   sum_{a != b} |d_X(s_a, s_b) - d_Y(T s_a, T s_b)| / sum_{a != b} d_X(s_a, s_b)
+ * 0 for an isometry, about 0.08-0.12 for right maps between two people, 0.2-0.5 when a
+ * limb or the whole body landed in a wrong basin (a swapped leg stretches every distance
+ * from it). A mirror is an isometry of a symmetric shape: the distortion cannot see it,
+ * the orientation can. Pairs of samples in different components of either shape are
+ * left out. Not part of the confidence (it costs a path search per sample); sm_match's
+ * tip search uses it to choose among its maps.
+ *
  * Contract: meshes (cleaned, normalized to unit area) and maps are borrowed, read only;
- * mass is X's lumped vertex mass (n_X). No global state, thread-safe.
+ * mass is X's lumped vertex mass (n_X). No global state, thread-safe, except that a
+ * sm_edge_paths handle serves one thread at a time.
  * Errors: SM_EINVAL (missing argument), SM_ERANGE (a map entry out of range), SM_ENOMEM.
  */
 #ifndef SM_CONFIDENCE_H
@@ -26,6 +37,7 @@
 
 #include "sm_error.h"
 #include "sm_mesh.h"
+#include "sm_metrics.h"
 
 #define SM_CONFIDENCE_TAU 0.1
 
@@ -36,5 +48,10 @@ typedef struct sm_confidence {
 int sm_map_confidence(const sm_mesh *X, const sm_mesh *Y, const double *mass_x,
                       const int32_t *T, const int32_t *T_yx, sm_confidence *out,
                       sm_error *err);
+
+/* Distortion of T (n_X entries) over the ns samples src of X whose pairwise distances are
+ * src_dist (row-major, leading dimension ld >= ns); paths_y searches Y (sm_metrics.h). */
+int sm_map_distortion(sm_edge_paths *paths_y, const int32_t *T, const int32_t *src,
+                      const double *src_dist, int ns, int ld, double *out, sm_error *err);
 
 #endif

@@ -22,7 +22,7 @@ typedef struct ext_work {
 
 /* AGD over farthest-point sources; a vertex's mean runs over the sources that reach it, so
  * the first source of a new component is where the last search left vertices unreached. */
-static int ext_agd(ext_work *w, sm_error *err) {
+static int ext_agd(ext_work *w, sm_ext_set *set, sm_error *err) {
   int32_t nv = w->m->nv;
   double *mind = malloc((size_t)nv * sizeof *mind);
   int32_t *cnt = calloc((size_t)nv, sizeof *cnt);
@@ -31,6 +31,9 @@ static int ext_agd(ext_work *w, sm_error *err) {
   int32_t src = 0;
   for (int s = 0; !rc && s < SM_EXT_SOURCES; s++) {
     rc = sm_edge_paths_run(w->paths, src, w->d, err);
+    set->src[s] = src;
+    for (int t = 0; !rc && t <= s; t++)
+      set->src_dist[s][t] = set->src_dist[t][s] = w->d[set->src[t]];
     int32_t far = 0;
     for (int32_t v = 0; !rc && v < nv; v++) {
       if (isfinite(w->d[v])) w->agd[v] += w->d[v], cnt[v]++;
@@ -126,7 +129,7 @@ int sm_ext_detect(const sm_mesh *m, sm_ext_set **out, sm_error *err) {
   int rc = (!s || !w.agd || !w.d) ? sm_error_set(err, SM_ENOMEM, "extremities: out of memory")
                                   : SM_OK;
   if (!rc) rc = sm_edge_paths_create(m, &w.paths, err);
-  if (!rc) rc = ext_agd(&w, err);
+  if (!rc) rc = ext_agd(&w, s, err);
   if (!rc) rc = ext_collect(&w, s, err);
   sm_edge_paths_destroy(w.paths);
   for (int t = 0; t < SM_EXT_MAX; t++) free(w.rows[t]);

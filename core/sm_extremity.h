@@ -38,6 +38,11 @@ typedef struct sm_ext_set {
   double agd[SM_EXT_MAX];         /* their AGD / the mean AGD of the shape */
   double dist[SM_EXT_MAX][SM_EXT_MAX]; /* pairwise geodesic distances / the mean AGD;
                                           +inf between components */
+  /* The AGD's farthest-point sources and their pairwise edge-path distances (unit area,
+   * not divided by the mean AGD; +inf between components): samples on which a map's
+   * geodesic distortion is measured (sm_map_distortion). */
+  int32_t src[SM_EXT_SOURCES];
+  double src_dist[SM_EXT_SOURCES][SM_EXT_SOURCES];
 } sm_ext_set;
 
 typedef struct sm_ext_hypothesis {

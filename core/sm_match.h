@@ -20,8 +20,8 @@
  *   tip search (default: when the map's confidence is below ext_below; sm_extremity.h):
  *     the tips of both shapes (head, hands, feet, tail) are found from the average geodesic
  *     distance; each of the ext_hypotheses cheapest tip assignments becomes the landmarks
- *     of a full match, and the most continuous of those maps and the first one is kept
- *     (mirrored maps penalized).
+ *     of a full match, and of those maps and the first one the most continuous and least
+ *     distorted is kept (mirrored maps penalized).
  *     The descriptor start is right on near-isometric pairs and wrong, with a low
  *     confidence, between species (gorilla -> human); the tips put such a pair in the
  *     right basin. Costs one match per hypothesis, so only doubtful maps pay for it;
@@ -52,7 +52,7 @@
 enum sm_match_basis { SM_MATCH_LB = 1, SM_MATCH_ELASTIC = 2, SM_MATCH_HYBRID = 3 };
 enum sm_match_init { SM_INIT_NN = 1, SM_INIT_SINKHORN = 2 };
 enum sm_match_ext { SM_EXT_OFF = 0, SM_EXT_WHEN_DOUBTFUL = 1, SM_EXT_ALWAYS = 2 };
-#define SM_MATCH_EXT_BELOW 0.45 /* see "tip search" above */
+#define SM_MATCH_EXT_BELOW 0.5 /* see "tip search" above */
 #define SM_MATCH_EXT_MAX_H 12
 
 typedef struct sm_shape_opts {
@@ -128,6 +128,8 @@ typedef struct sm_match_result {
   int ext_tried;            /* tip hypotheses refined (0: the tip search did not run) */
   int ext_hypothesis;       /* 0: the descriptor start's map was kept; h >= 1: the map
                                started from the h-th cheapest tip assignment won */
+  double distortion;        /* geodesic distortion of T and T_yx (mean; sm_confidence.h),
+                               measured by the tip search only; 0 when it did not run */
   double t_init, t_refine;  /* seconds; t_init includes the tip search, t_refine is the
                                winning map's refinement */
 } sm_match_result;

@@ -544,6 +544,8 @@ int sm_edge_paths_run(sm_edge_paths *p, int32_t source, double *dist, sm_error *
   return SM_OK;
 }
 
+int32_t sm_edge_paths_size(const sm_edge_paths *p) { return p->g.nv; }
+
 void sm_edge_paths_destroy(sm_edge_paths *p) {
   if (!p) return;
   ws_free(&p->w);

@@ -110,6 +110,7 @@ int sm_mesh_edge_dijkstra(const sm_mesh *m, int32_t source, double *dist, sm_err
 typedef struct sm_edge_paths sm_edge_paths;
 int sm_edge_paths_create(const sm_mesh *m, sm_edge_paths **out, sm_error *err);
 int sm_edge_paths_run(sm_edge_paths *p, int32_t source, double *dist, sm_error *err);
+int32_t sm_edge_paths_size(const sm_edge_paths *p); /* vertices of the mesh */
 void sm_edge_paths_destroy(sm_edge_paths *p);
 
 /* e[gt->n]: the geodesic errors defined above, on `target`, for a map of length n_source.
