@@ -74,7 +74,7 @@ static int usage(FILE *f) {
           "        [--size W,H]\n"
           "        the same pictures of a map file that match wrote\n"
           "  distance A B [match options] [--json]\n"
-          "        cosine shape distance in [0, 2] after matching both ways; prints the number\n"
+          "        shape distance in [0, 1) after matching both ways; prints the number\n"
           "  eval A B --map MAP.txt [--gt FILE] [--gt-kind dense|inverse|vts|pairs|identity]\n"
           "        [--gt-tgt FILE] [--gt-base 0|1] [--json]\n"
           "        geodesic error (Dijkstra on B's edges / sqrt(area B)), accuracy curve,\n"

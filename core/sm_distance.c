@@ -141,6 +141,10 @@ double sm_spectrum_distance(const sm_basis *a, const sm_basis *b) {
  * to s to first order, so the total stays in the documented [0, 2]. */
 static double squash(double s) { return 1.0 - exp(-s); }
 
+double sm_shape_spectral_term(const sm_shape *x, const sm_shape *y) {
+  return squash(sm_spectrum_ratio_distance(x->lb, y->lb, SM_DIST_SPECTRUM));
+}
+
 int sm_shape_distance_ex(const sm_shape *x, const sm_shape *y, const int32_t *T_xy,
                          const int32_t *T_yx, const sm_distance_opts *o,
                          sm_distance_parts *out, sm_error *err) {

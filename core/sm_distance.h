@@ -81,8 +81,13 @@ int sm_shape_distance_ex(const sm_shape *x, const sm_shape *y, const int32_t *T_
  * MATCH with WANT_DISTANCE keeps the check and reports the distance of the map it returns. */
 void sm_distance_match_opts(sm_match_opts *o);
 
-/* The spectral term alone (no map needed; a cheap pre-filter for retrieval): 1 - cos of
- * the centered log positive eigenvalues of a and b, the first min(50, ...) of them. */
+/* The shipped spectral term (spectrum_lb of sm_shape_distance with default options), from
+ * the LB bases alone, no map needed: QUERY's prefilter. With the default map weight 0 it
+ * is the shipped total, so the prefilter's ranking is the final one. */
+double sm_shape_spectral_term(const sm_shape *x, const sm_shape *y);
+
+/* The paper-style spectral term: 1 - cos of the centered log positive eigenvalues of a and
+ * b, the first min(50, ...) of them. */
 double sm_spectrum_distance(const sm_basis *a, const sm_basis *b);
 
 /* The shipped spectral term before squashing: the RMS over i = 1..K of

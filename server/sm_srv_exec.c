@@ -680,10 +680,7 @@ static void query_unit(void *vc, uint32_t u, sm_job *uj) {
   const sm_shape *x = sm_prepared_shape(c->px), *y = sm_prepared_shape(py);
   double dist;
   if (c->phase == 0) {
-    double t = sm_spectrum_distance(x->lb, y->lb);
-    int nt = 1;
-    if (x->elastic && y->elastic) t += sm_spectrum_distance(x->elastic, y->elastic), nt++;
-    dist = t / nt;
+    dist = sm_shape_spectral_term(x, y);
   } else {
     sm_match_opts mo = c->mo;
     mo.cancel = cancel_cb;

@@ -415,7 +415,7 @@ class Client:
         return self._call(MatchRequest(x, y, **options))
 
     def distance(self, x, y, **options):
-        """Shape distance in [0, 2] with its terms; a DistanceResult."""
+        """Shape distance in [0, 1) with its terms; a DistanceResult."""
         return self._call(DistanceRequest(x, y, **options))
 
     def query(self, shape, k=10, mode="default", candidates=None, deadline_ms=0):

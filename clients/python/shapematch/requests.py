@@ -102,7 +102,7 @@ class PrepareResult:
 
 @dataclass
 class DistanceResult:
-    total: float            # in [0, 2]
+    total: float            # in [0, 1)
     point_xy: float
     point_yx: float
     spectrum_lb: float
