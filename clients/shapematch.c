@@ -66,7 +66,7 @@ static int usage(FILE *f) {
           "        30,20; 960,480 pixels). --tips (local matching; the daemon uses\n"
           "        doubtful): the tip search, a landmark-free global start from the shapes'\n"
           "        tips (head, hands, feet), run when the map's confidence is doubtful\n"
-          "        (below 0.45, the default), always (slower), or off. --multires (local\n"
+          "        (below 0.5, the default), always (slower), or off. --multires (local\n"
           "        matching): match through coarse levels of about 5,000 vertices and carry\n"
           "        the map back to every vertex: auto (default) when a mesh has more than\n"
           "        20,000 vertices, on, or off (the full-resolution path)\n"

@@ -376,9 +376,8 @@ int main(int argc, char **argv) {
        * woman pairs the descriptor start gets right (0.0428 -> 0.0379 after the tip search,
        * 0.0336 without it), and a gorilla -> human pair the descriptor start gets wrong
        * (0.634) that the tip search brings to 0.190 (the field's failure line is 0.1). Not
-       * here: a pair whose first confidence sits near the search's 0.45 threshold (man 04
-       * -> woman 03: 0.405 in bench_hard, 0.451 with this test's preparation), where the
-       * outcome flips between 0.04 and 0.16. */
+       * here: a pair whose outcome flips between 0.04 and 0.17 with the hypothesis the
+       * search keeps (man 04 -> woman 03). */
       {"man03-woman03", TND "meshes/8_man_03.off.gz", TND "meshes/8_woman_03.off.gz",
        TND "corres/8_man_03.vts", 0.046, TND "corres/8_woman_03.vts"},
       {"man07-woman12", TND "meshes/8_man_07.off.gz", TND "meshes/8_woman_12.off.gz",
