@@ -73,24 +73,10 @@ typedef struct bench_cfg {
 /* The stem names the cache files: the mesh file's name plus a tag (permuted copies). */
 static int prepare(const sm_mesh *raw, const char *cache, const char *stem, sm_shape **out,
                    sm_error *err) {
-  sm_mesh *m = NULL;
-  sm_basis *lb = NULL, *el = NULL;
-  char path[4096];
-  int cached;
-  int rc = sm_mesh_clean(raw, NULL, &m, NULL, err);
-  if (!rc) rc = sm_mesh_normalize(m, err);
-  snprintf(path, sizeof path, "%s/%s.lb.k%d.smb", cache, stem, K_BASIS);
-  if (!rc) rc = bench_cached_basis(m, SM_BASIS_LB, K_BASIS, path, &lb, &cached, err);
-  snprintf(path, sizeof path, "%s/%s.el.k%d.smb", cache, stem, K_BASIS);
-  if (!rc) rc = bench_cached_basis(m, SM_BASIS_ELASTIC, K_BASIS, path, &el, &cached, err);
-  if (rc) {
-    sm_mesh_destroy(m);
-    sm_basis_destroy(lb);
-    return rc;
-  }
-  sm_shape_opts so;
-  sm_shape_opts_default(&so);
-  return sm_shape_assemble(m, lb, el, so.n_desc, out, err);
+  char lb[4096], el[4096];
+  snprintf(lb, sizeof lb, "%s/%s.lb.k%d.smb", cache, stem, K_BASIS);
+  snprintf(el, sizeof el, "%s/%s.el.k%d.smb", cache, stem, K_BASIS);
+  return bench_cached_shape(raw, K_BASIS, lb, el, out, NULL, err);
 }
 
 static const char *base_name(const char *path) {

@@ -13,6 +13,7 @@
 #include <unistd.h>
 
 #include "sm_basis.h"
+#include "sm_match.h"
 #include "sm_mesh.h"
 #include "sm_meshio.h"
 #include "sm_metrics.h"
@@ -182,6 +183,30 @@ static inline int bench_cached_basis(const sm_mesh *m, int kind, int k, const ch
   if (!rc) rc = sm_basis_save(*b, path, err);
   *cached = 0;
   return rc;
+}
+
+/* raw cleaned, normalized and assembled into a shape with its LB and elastic bases (K
+ * functions each) from the cache files lb_path and el_path (computed and saved there when
+ * missing or stale); *all_cached (may be NULL) says whether both came from the cache. */
+static inline int bench_cached_shape(const sm_mesh *raw, int K, const char *lb_path,
+                                     const char *el_path, sm_shape **out, int *all_cached,
+                                     sm_error *err) {
+  sm_mesh *m = NULL;
+  sm_basis *lb = NULL, *el = NULL;
+  int c1 = 0, c2 = 0;
+  int rc = sm_mesh_clean(raw, NULL, &m, NULL, err);
+  if (!rc) rc = sm_mesh_normalize(m, err);
+  if (!rc) rc = bench_cached_basis(m, SM_BASIS_LB, K, lb_path, &lb, &c1, err);
+  if (!rc) rc = bench_cached_basis(m, SM_BASIS_ELASTIC, K, el_path, &el, &c2, err);
+  if (all_cached) *all_cached = c1 && c2;
+  if (rc) {
+    sm_mesh_destroy(m);
+    sm_basis_destroy(lb);
+    return rc;
+  }
+  sm_shape_opts so;
+  sm_shape_opts_default(&so);
+  return sm_shape_assemble(m, lb, el, so.n_desc, out, err);
 }
 
 #endif

@@ -32,44 +32,21 @@
 #include "sm_match.h"
 #include "sm_meshio.h"
 
+#include "eval_configs.h"
+
 #define K_BASIS 100
 #define MAX_SHAPES 4096
 
-typedef struct cfg_t {
-  const char *name;
-  int init, basis;
-} cfg_t;
-
-static const cfg_t CONFIGS[] = {
-    {"nn+lb", SM_INIT_NN, SM_MATCH_LB},
-    {"nn+elastic", SM_INIT_NN, SM_MATCH_ELASTIC},
-    {"sinkhorn+lb", SM_INIT_SINKHORN, SM_MATCH_LB},
-    {"sinkhorn+elastic", SM_INIT_SINKHORN, SM_MATCH_ELASTIC},
-    {"sinkhorn+hybrid", SM_INIT_SINKHORN, SM_MATCH_HYBRID},
-};
-
 static int prepare(const char *path, const char *cache, const char *name, sm_shape **out,
                    sm_error *err) {
-  sm_mesh *raw = NULL, *m = NULL;
-  sm_basis *lb = NULL, *el = NULL;
-  char p[4096];
-  int c;
+  sm_mesh *raw = NULL;
+  char lb[4096], el[4096];
+  snprintf(lb, sizeof lb, "%s/%s.lb.smb", cache, name);
+  snprintf(el, sizeof el, "%s/%s.el.smb", cache, name);
   int rc = sm_mesh_read_file(path, NULL, &raw, err);
-  if (!rc) rc = sm_mesh_clean(raw, NULL, &m, NULL, err);
+  if (!rc) rc = bench_cached_shape(raw, K_BASIS, lb, el, out, NULL, err);
   sm_mesh_destroy(raw);
-  if (!rc) rc = sm_mesh_normalize(m, err);
-  snprintf(p, sizeof p, "%s/%s.lb.smb", cache, name);
-  if (!rc) rc = bench_cached_basis(m, SM_BASIS_LB, K_BASIS, p, &lb, &c, err);
-  snprintf(p, sizeof p, "%s/%s.el.smb", cache, name);
-  if (!rc) rc = bench_cached_basis(m, SM_BASIS_ELASTIC, K_BASIS, p, &el, &c, err);
-  if (rc) {
-    sm_mesh_destroy(m);
-    sm_basis_destroy(lb);
-    return rc;
-  }
-  sm_shape_opts so;
-  sm_shape_opts_default(&so);
-  return sm_shape_assemble(m, lb, el, so.n_desc, out, err);
+  return rc;
 }
 
 static void put_basis(FILE *f, const sm_basis *b) {
@@ -152,7 +129,7 @@ int main(int argc, char **argv) {
       return fprintf(stderr, "dist_dump: cannot write %s\n", p), 1;
   }
   if (shapes_only) return 0;
-  for (size_t c = 0; c < sizeof CONFIGS / sizeof CONFIGS[0]; c++) {
+  for (int c = 0; c < N_CONFIGS; c++) {
     char buf[512];
     snprintf(buf, sizeof buf, ",%s,", cfgs);
     char key[64];

@@ -45,19 +45,7 @@
 #define MAX_KS 16
 #define DESC_K 100
 
-typedef struct eval_config {
-  const char *name;
-  int init, basis;
-} eval_config;
-
-static const eval_config CONFIGS[] = {
-    {"nn+lb", SM_INIT_NN, SM_MATCH_LB},
-    {"nn+elastic", SM_INIT_NN, SM_MATCH_ELASTIC},
-    {"sinkhorn+lb", SM_INIT_SINKHORN, SM_MATCH_LB},
-    {"sinkhorn+elastic", SM_INIT_SINKHORN, SM_MATCH_ELASTIC},
-    {"sinkhorn+hybrid", SM_INIT_SINKHORN, SM_MATCH_HYBRID},
-};
-#define N_CONFIGS ((int)(sizeof CONFIGS / sizeof CONFIGS[0]))
+#include "eval_configs.h"
 
 typedef struct pair_data {
   const pair_spec *spec;
@@ -75,25 +63,11 @@ typedef struct pair_data {
  * descriptors taken from the first DESC_K LB functions. */
 static int prepare_shape(const sm_mesh *raw, int k, const char *cache, const char *stem,
                          sm_shape **out, int *all_cached, sm_error *err) {
-  sm_mesh *m = NULL;
-  sm_basis *lb = NULL, *el = NULL;
-  char path[4096];
-  int c1 = 0, c2 = 0;
-  int rc = sm_mesh_clean(raw, NULL, &m, NULL, err);
-  if (!rc) rc = sm_mesh_normalize(m, err);
-  snprintf(path, sizeof path, "%s/%s.lb.k%d.smb", cache, stem, k);
-  if (!rc) rc = bench_cached_basis(m, SM_BASIS_LB, k, path, &lb, &c1, err);
-  snprintf(path, sizeof path, "%s/%s.el.k%d.smb", cache, stem, k);
-  if (!rc) rc = bench_cached_basis(m, SM_BASIS_ELASTIC, k, path, &el, &c2, err);
-  if (rc) {
-    sm_mesh_destroy(m);
-    sm_basis_destroy(lb);
-    return rc;
-  }
-  *all_cached = c1 && c2;
-  sm_shape_opts so;
-  sm_shape_opts_default(&so);
-  rc = sm_shape_assemble(m, lb, el, so.n_desc, out, err);
+  char lbp[4096], elp[4096];
+  snprintf(lbp, sizeof lbp, "%s/%s.lb.k%d.smb", cache, stem, k);
+  snprintf(elp, sizeof elp, "%s/%s.el.k%d.smb", cache, stem, k);
+  int rc = bench_cached_shape(raw, k, lbp, elp, out, all_cached, err);
+  const sm_basis *lb = rc ? NULL : (*out)->lb;
   if (rc || lb->k <= DESC_K) return rc;
   sm_basis head = *lb; /* a view of the first DESC_K columns (LB: M-orthonormal) */
   head.k = DESC_K;
