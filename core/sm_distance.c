@@ -138,7 +138,7 @@ double sm_spectrum_distance(const sm_basis *a, const sm_basis *b) {
 }
 
 /* 1 - exp(-s): the shipped terms are >= 0 and unbounded; this keeps each in [0, 1), equal
- * to s to first order, so the total stays in the documented [0, 2]. */
+ * to s to first order, so the shipped total stays in the documented [0, 1). */
 static double squash(double s) { return 1.0 - exp(-s); }
 
 double sm_shape_spectral_term(const sm_shape *x, const sm_shape *y) {
