@@ -442,6 +442,7 @@ typedef struct ply_header {
   long long nv, nf;
   int seen_vertex;
   int xyz_float32; /* x, y, z all float32: OpenMesh reads them exactly */
+  int plain;       /* OpenMesh tokenizes this header as we do (ply_header_is_plain) */
   size_t body;     /* offset of the first byte after end_header */
 } ply_header;
 
@@ -517,7 +518,15 @@ static int ply_element(tcur *c, ply_header *h, sm_error *err) {
   return 0;
 }
 
-static int ply_header_line(tcur *c, ply_header *h, int *done, sm_error *err) {
+/* A format, element or property line with words after its last field: we ignore them, but
+ * OpenMesh reads the header as one stream of words, so they shift everything it reads after
+ * them (and it loops forever when a count then fails to parse; found by fuzz_meshio). */
+static void ply_note_trailing_words(tcur *c, ply_header *h) {
+  const char *w;
+  if (header_word(c, &w) != 0) h->plain = 0;
+}
+
+static int ply_header_fields(tcur *c, ply_header *h, int *done, sm_error *err) {
   const char *w;
   size_t n = header_word(c, &w);
   if (wordeq(w, n, "format")) {
@@ -542,6 +551,29 @@ static int ply_header_line(tcur *c, ply_header *h, int *done, sm_error *err) {
   return 0;
 }
 
+static int ply_header_line(tcur *c, ply_header *h, int *done, sm_error *err) {
+  tcur peek = *c;
+  const char *w;
+  size_t n = header_word(&peek, &w);
+  int fielded = wordeq(w, n, "format") || wordeq(w, n, "element") || wordeq(w, n, "property") ||
+                wordeq(w, n, "end_header");
+  int rc = ply_header_fields(c, h, done, err);
+  if (rc == 0 && fielded) ply_note_trailing_words(c, h);
+  return rc;
+}
+
+/* True when the header's bytes are printable ASCII, spaces, tabs and line ends only, so
+ * that OpenMesh's stream tokenizer (which also splits at \v and \f, and reads across
+ * lines) sees the words and lines we parsed. Anything else goes to our own reader. */
+static int ply_header_bytes_plain(const char *buf, size_t body) {
+  for (size_t i = 0; i < body; i++) {
+    unsigned char ch = (unsigned char)buf[i];
+    if (ch == '\r' && i + 1 < body && buf[i + 1] == '\n') continue;
+    if (ch != '\n' && ch != '\t' && (ch < 0x20 || ch > 0x7e)) return 0;
+  }
+  return 1;
+}
+
 static void ply_check_xyz(ply_header *h) {
   h->xyz_float32 = 1;
   for (int i = 0; i < h->nelems; i++)
@@ -555,10 +587,12 @@ static int ply_read_header(const char *name, const char *buf, size_t len, ply_he
                            sm_error *err) {
   memset(h, 0, sizeof *h);
   h->format = -1;
+  h->plain = 1;
   tcur c = {buf, buf + len, name, 1};
   const char *w;
   size_t n = header_word(&c, &w);
   if (!wordeq(w, n, "ply")) return sm_error_set(err, SM_EFORMAT, "%s: not a PLY file", name);
+  ply_note_trailing_words(&c, h);
   int done = 0, rc;
   while (!done) {
     next_line(&c);
@@ -568,6 +602,7 @@ static int ply_read_header(const char *name, const char *buf, size_t len, ply_he
   if (h->format < 0) return sm_error_set(err, SM_EFORMAT, "%s: PLY header has no format line", name);
   next_line(&c);
   h->body = (size_t)(c.p - buf);
+  h->plain = h->plain && ply_header_bytes_plain(buf, h->body);
   ply_check_xyz(h);
   return 0;
 }
@@ -713,14 +748,14 @@ static int read_ply_own(const char *name, const char *buf, size_t len, const ply
   return 0;
 }
 
-/* OpenMesh first for binary float32 files; our own parser when OpenMesh's counts differ
- * from the header's (or OpenMesh fails). */
+/* OpenMesh first for binary float32 files with a plain header; our own parser for the
+ * rest and when OpenMesh's counts differ from the header's (or OpenMesh fails). */
 static int read_ply(const char *name, const char *buf, size_t len, const sm_limits *lim,
                     sm_mesh **out, sm_error *err) {
   ply_header h;
   int rc = ply_read_header(name, buf, len, &h, err);
   if (rc) return rc;
-  if (h.format != PLY_ASCII && h.xyz_float32 && h.nv > 0) {
+  if (h.format != PLY_ASCII && h.xyz_float32 && h.plain && h.nv > 0) {
     sm_mesh *m = NULL;
     int64_t npoly = -1;
     if (sm_limits_check(lim, h.nv, h.nf, err) == 0 &&
