@@ -55,6 +55,7 @@
 #include "sm_eigs.h"
 #include "sm_match.h"
 #include "sm_meshio.h"
+#include "sm_prepare.h"
 #include "sm_synth.h"
 
 #define MAX_CLIENTS 8
@@ -261,10 +262,10 @@ static int load_inputs(inputs *in, sm_error *err) {
 static int prepare_local(const inputs *in, sm_shape *s[2], sm_error *err) {
   for (int i = 0; i < 2; i++) {
     sm_mesh *m = NULL;
-    sm_shape_opts so;
-    sm_shape_opts_default(&so);
+    sm_prep_opts po;
+    sm_prep_opts_default(&po);
     int rc = sm_draco_decode(in->draco[i], in->len[i], NULL, &m, err);
-    if (!rc) rc = sm_shape_prepare(m, &so, &s[i], err);
+    if (!rc) rc = sm_prepare(m, &po, &s[i], NULL, err);
     sm_mesh_destroy(m);
     if (rc) return rc;
   }

@@ -17,6 +17,8 @@
 #include "sm_mesh.h"
 #include "sm_meshio.h"
 #include "sm_metrics.h"
+#include "sm_prepare.h"
+#include "sm_shell.h"
 
 #define PERM_SEED 0x5eed2024u
 
@@ -166,47 +168,46 @@ static inline int bench_load_raw_pair(const pair_spec *ps, bench_raw_pair *p, sm
   return rc;
 }
 
-/* A basis of m from the cache file path when it was computed on this mesh with k
- * functions, else computed (default options) and saved there; *cached says which. */
-static inline int bench_cached_basis(const sm_mesh *m, int kind, int k, const char *path,
-                                     sm_basis **b, int *cached, sm_error *err) {
-  if (sm_basis_load(path, b, NULL) == SM_OK) {
-    if ((*b)->mesh_hash == sm_mesh_hash(m) && (*b)->k == k) {
-      *cached = 1;
-      return SM_OK;
-    }
-    sm_basis_destroy(*b);
-  }
-  sm_basis_opts bo;
-  sm_basis_opts_default(&bo, kind, k);
-  int rc = sm_basis_compute(m, &bo, b, err);
-  if (!rc) rc = sm_basis_save(*b, path, err);
-  *cached = 0;
-  return rc;
+/* sm_prepare's hooks over two cache files (one per kind): a file is used when it holds
+ * the basis asked for, computed on this mesh (sm_basis_fits); what is computed is saved. */
+typedef struct bench_basis_files {
+  const char *path[SM_BASIS_NKINDS + 1]; /* by kind */
+} bench_basis_files;
+
+static inline int bench_files_load(void *ud, const sm_basis_spec *spec, const sm_mesh *m,
+                                   sm_basis **out, sm_error *err) {
+  (void)err;
+  const bench_basis_files *f = ud;
+  if (sm_basis_load(f->path[spec->kind], out, NULL)) return 0;
+  if (sm_basis_fits(*out, spec, m, NULL) == SM_OK) return 1;
+  sm_basis_destroy(*out);
+  *out = NULL;
+  return 0;
 }
 
-/* raw cleaned, normalized and assembled into a shape with its LB and elastic bases (K
- * functions each) from the cache files lb_path and el_path (computed and saved there when
- * missing or stale); *all_cached (may be NULL) says whether both came from the cache. */
+static inline void bench_files_save(void *ud, const sm_basis_spec *spec, const sm_basis *b) {
+  const bench_basis_files *f = ud;
+  sm_error err;
+  if (b && sm_basis_save(b, f->path[spec->kind], &err))
+    fprintf(stderr, "warning: cannot cache a basis: %s\n", err.msg);
+}
+
+/* raw prepared (sm_prepare) with LB and elastic bases of K functions each, taken from the
+ * cache files lb_path and el_path (computed and saved there when missing or stale);
+ * *all_cached (may be NULL) says whether both came from the cache. */
 static inline int bench_cached_shape(const sm_mesh *raw, int K, const char *lb_path,
                                      const char *el_path, sm_shape **out, int *all_cached,
                                      sm_error *err) {
-  sm_mesh *m = NULL;
-  sm_basis *lb = NULL, *el = NULL;
-  int c1 = 0, c2 = 0;
-  int rc = sm_mesh_clean(raw, NULL, &m, NULL, err);
-  if (!rc) rc = sm_mesh_normalize(m, err);
-  if (!rc) rc = bench_cached_basis(m, SM_BASIS_LB, K, lb_path, &lb, &c1, err);
-  if (!rc) rc = bench_cached_basis(m, SM_BASIS_ELASTIC, K, el_path, &el, &c2, err);
-  if (all_cached) *all_cached = c1 && c2;
-  if (rc) {
-    sm_mesh_destroy(m);
-    sm_basis_destroy(lb);
-    return rc;
-  }
-  sm_shape_opts so;
-  sm_shape_opts_default(&so);
-  return sm_shape_assemble(m, lb, el, so.n_desc, out, err);
+  bench_basis_files files = {{NULL, lb_path, el_path}};
+  sm_prep_hooks hooks = {bench_files_load, bench_files_save, &files};
+  sm_prep_opts po;
+  sm_prep_opts_default(&po);
+  po.nspec = sm_prep_default_specs(po.spec, K, K, SM_SHELL_DEFAULT_ETA);
+  po.hooks = &hooks;
+  sm_prep_info info;
+  int rc = sm_prepare(raw, &po, out, &info, err);
+  if (all_cached) *all_cached = !rc && info.loaded == po.nspec;
+  return rc;
 }
 
 #endif

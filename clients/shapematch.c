@@ -32,6 +32,7 @@
 #include "sm_synth.h"
 #include "sm_match.h"
 #include "sm_multires.h"
+#include "sm_prepare.h"
 #include "sm_distance.h"
 #include "sm_metrics.h"
 #include "sm_client.h"
@@ -401,12 +402,21 @@ static void progress(const char *fmt, const char *arg) {
   fflush(stderr);
 }
 
+/* The preparation options of the local commands: so's bases, computed two at a time (the
+ * LB basis beside the elastic one; OpenBLAS itself runs on one thread, see main). */
+static void local_prep_opts(const sm_shape_opts *so, sm_prep_opts *po) {
+  sm_prep_opts_from_shape(po, so);
+  po->threads = 2;
+}
+
 static int prepare_shape(const char *path, const sm_shape_opts *so, sm_shape **out) {
   sm_error err;
   sm_mesh *raw;
   if (sm_mesh_read_file(path, NULL, &raw, &err)) return fail(path, &err);
   progress("computing the bases of %s ...", path);
-  int rc = sm_shape_prepare(raw, so, out, &err);
+  sm_prep_opts po;
+  local_prep_opts(so, &po);
+  int rc = sm_prepare(raw, &po, out, NULL, &err);
   progress("%s", "");
   sm_mesh_destroy(raw);
   return rc ? fail(path, &err) : 0;
@@ -538,11 +548,13 @@ static int run_multires(match_args *m, match_run *mr, int *rc) {
   }
   int want = sm_multires_wanted(&m->ro, ra->nv, rb->nv);
   if (want) {
+    sm_prep_opts po;
+    local_prep_opts(&m->so, &po);
     progress("building the coarse level of %s ...", m->a);
-    *rc = sm_multires_shape_prepare(ra, &m->so, &m->ro, &mr->mx, &err) ? fail(m->a, &err) : 0;
+    *rc = sm_prepare_multires(ra, &po, &m->ro, &mr->mx, NULL, &err) ? fail(m->a, &err) : 0;
     progress("building the coarse level of %s ...", m->b);
     if (!*rc)
-      *rc = sm_multires_shape_prepare(rb, &m->so, &m->ro, &mr->my, &err) ? fail(m->b, &err) : 0;
+      *rc = sm_prepare_multires(rb, &po, &m->ro, &mr->my, NULL, &err) ? fail(m->b, &err) : 0;
     progress("%s", "");
   }
   sm_mesh_destroy(ra);

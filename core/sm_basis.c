@@ -33,6 +33,60 @@ void sm_basis_opts_default(sm_basis_opts *o, int kind, int k) {
   o->lambda = 1.0;
 }
 
+void sm_basis_opts_of_spec(sm_basis_opts *o, const sm_basis_spec *spec) {
+  sm_basis_opts_default(o, spec->kind, spec->k);
+  if (spec->kind == SM_BASIS_ELASTIC) o->eta = spec->eta;
+}
+
+static const char *kind_tag(int kind) {
+  return kind == SM_BASIS_LB ? "lb" : kind == SM_BASIS_ELASTIC ? "el" : "unknown";
+}
+
+int sm_basis_spec_check(const sm_basis_spec *spec, sm_error *err) {
+  if (spec->kind < 1 || spec->kind > SM_BASIS_NKINDS)
+    return sm_error_set(err, SM_EINVAL, "basis kind %d unknown", spec->kind);
+  if (spec->k < 1)
+    return sm_error_set(err, SM_EINVAL, "%s basis: k = %d, must be >= 1", kind_tag(spec->kind),
+                        spec->k);
+  if (spec->kind == SM_BASIS_ELASTIC && !(isfinite(spec->eta) && spec->eta > 0))
+    return sm_error_set(err, SM_EINVAL, "elastic basis: eta = %g, must be finite and > 0",
+                        spec->eta);
+  if (spec->kind == SM_BASIS_LB && spec->eta != 0)
+    return sm_error_set(err, SM_EINVAL, "lb basis: eta = %g, must be 0 (no parameter)",
+                        spec->eta);
+  return SM_OK;
+}
+
+static uint64_t eta_bits(double eta) {
+  uint64_t u;
+  memcpy(&u, &eta, sizeof u);
+  return u;
+}
+
+int sm_basis_spec_eq(const sm_basis_spec *a, const sm_basis_spec *b) {
+  return a->kind == b->kind && a->k == b->k && eta_bits(a->eta) == eta_bits(b->eta);
+}
+
+int sm_basis_spec_name(const sm_basis_spec *spec, char *buf, size_t n) {
+  return snprintf(buf, n, "%s.k%d.eta%016llx", kind_tag(spec->kind), spec->k,
+                  (unsigned long long)eta_bits(spec->eta));
+}
+
+int sm_basis_fits(const sm_basis *b, const sm_basis_spec *spec, const sm_mesh *m,
+                  sm_error *err) {
+  if (b->kind != spec->kind || b->k != spec->k)
+    return sm_error_set(err, SM_EFORMAT, "basis is %s k = %d, %s k = %d was asked for",
+                        kind_tag(b->kind), b->k, kind_tag(spec->kind), spec->k);
+  if (spec->kind == SM_BASIS_ELASTIC && eta_bits(b->eta) != eta_bits(spec->eta))
+    return sm_error_set(err, SM_EFORMAT, "basis has eta = %g, %g was asked for", b->eta,
+                        spec->eta);
+  if (b->n != m->nv || b->mesh_hash != sm_mesh_hash(m))
+    return sm_error_set(err, SM_EFORMAT, "basis was computed on another mesh (%d vertices, "
+                        "hash %016llx; this one: %d)", b->n,
+                        (unsigned long long)b->mesh_hash, m->nv);
+  return SM_OK;
+}
+
 static int cmp_double(const void *a, const void *b) {
   double x = *(const double *)a, y = *(const double *)b;
   return (x > y) - (x < y);

@@ -31,6 +31,17 @@
 #include "sm_mesh.h"
 
 enum sm_basis_kind { SM_BASIS_LB = 1, SM_BASIS_ELASTIC = 2 };
+#define SM_BASIS_NKINDS 2          /* kinds are 1..SM_BASIS_NKINDS */
+#define SM_BASIS_FORMAT_VERSION 1u /* of the binary form below (sm_basis_io.c) */
+
+/* What a basis is computed from besides its mesh: the unit of preparation (sm_prepare.h),
+ * of the daemon's cache and of its file names. eta is the elastic bending weight; it does
+ * not apply to LB and is 0 there (sm_basis_spec_check). */
+typedef struct sm_basis_spec {
+  int kind; /* enum sm_basis_kind */
+  int k;    /* functions kept (kernel excluded for elastic) */
+  double eta;
+} sm_basis_spec;
 
 typedef struct sm_basis_opts {
   int kind;    /* SM_BASIS_LB or SM_BASIS_ELASTIC */
@@ -62,6 +73,21 @@ typedef struct sm_basis {
 } sm_basis;
 
 void sm_basis_opts_default(sm_basis_opts *o, int kind, int k);
+/* The options that compute spec (defaults for what a spec does not name). */
+void sm_basis_opts_of_spec(sm_basis_opts *o, const sm_basis_spec *spec);
+
+/* SM_EINVAL naming the field unless spec is computable: a known kind, k >= 1, and eta
+ * finite and > 0 for elastic, exactly 0 for LB. */
+int sm_basis_spec_check(const sm_basis_spec *spec, sm_error *err);
+/* 1 if two specs name the same basis (eta compared bit for bit). */
+int sm_basis_spec_eq(const sm_basis_spec *a, const sm_basis_spec *b);
+/* A file-name-safe name of spec, e.g. "el.k100.eta3f1a36e2eb1c432d" (eta's bit pattern in
+ * hex): stable across versions, so caches named by it stay valid. Returns snprintf's. */
+int sm_basis_spec_name(const sm_basis_spec *spec, char *buf, size_t n);
+/* SM_OK if b is the basis spec describes, computed on m (kind, k, eta, vertex count and
+ * sm_mesh_hash); else SM_EFORMAT naming the first difference. For bases from a cache. */
+int sm_basis_fits(const sm_basis *b, const sm_basis_spec *spec, const sm_mesh *m,
+                  sm_error *err);
 
 int sm_basis_compute(const sm_mesh *m, const sm_basis_opts *o, sm_basis **out, sm_error *err);
 void sm_basis_destroy(sm_basis *b);
@@ -80,5 +106,10 @@ int sm_basis_serialize(const sm_basis *b, uint8_t **buf, size_t *len, sm_error *
 int sm_basis_deserialize(const uint8_t *buf, size_t len, sm_basis **out, sm_error *err);
 int sm_basis_save(const sm_basis *b, const char *path, sm_error *err);
 int sm_basis_load(const char *path, sm_basis **out, sm_error *err);
+
+/* Writes len bytes to path atomically, as sm_basis_save does (unique temp file
+ * path.tmp.<pid>.<n> in the same directory, fsync, rename, directory fsync): readers see
+ * the old file or the whole new one, also after a crash. SM_EIO naming the step. */
+int sm_file_write_atomic(const char *path, const uint8_t *buf, size_t len, sm_error *err);
 
 #endif

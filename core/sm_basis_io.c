@@ -63,7 +63,7 @@
 
 _Static_assert(sizeof(double) == 8, "f64 encoding needs a 64-bit double");
 
-#define BIO_VERSION 1u
+#define BIO_VERSION SM_BASIS_FORMAT_VERSION
 #define BIO_HEADER_SIZE 32u
 #define BIO_FIXED_SIZE 56u /* payload bytes before the arrays */
 #define BIO_FLAG_GRAM 1u
@@ -415,10 +415,11 @@ static int bio_open_temp(const char *path, char *tmp, size_t cap) {
   return -1;
 }
 
-static int bio_write_atomic(const char *path, const uint8_t *buf, size_t len, sm_error *err) {
+int sm_file_write_atomic(const char *path, const uint8_t *buf, size_t len, sm_error *err) {
+  if (!path) return sm_error_set(err, SM_EINVAL, "write: NULL path");
   size_t cap = strlen(path) + 64;
   char *tmp = malloc(cap);
-  if (!tmp) return sm_error_set(err, SM_ENOMEM, "basis_save: temp path");
+  if (!tmp) return sm_error_set(err, SM_ENOMEM, "write: temp path");
   int rc = SM_OK, fd = bio_open_temp(path, tmp, cap);
   if (fd < 0) {
     rc = bio_io_error(err, errno, "cannot create temp file for", path);
@@ -445,7 +446,7 @@ int sm_basis_save(const sm_basis *b, const char *path, sm_error *err) {
   if (!path) return sm_error_set(err, SM_EINVAL, "basis_save: NULL path");
   int rc = sm_basis_serialize(b, &buf, &len, err);
   if (rc) return rc;
-  rc = bio_write_atomic(path, buf, len, err);
+  rc = sm_file_write_atomic(path, buf, len, err);
   free(buf);
   return rc;
 }

@@ -172,49 +172,6 @@ int sm_shape_assemble(sm_mesh *mesh, sm_basis *lb, sm_basis *elastic, int n_desc
   return SM_OK;
 }
 
-static int compute_basis(const sm_mesh *m, int kind, int k, const sm_shape_opts *o,
-                         sm_basis **b, double *t, sm_error *err) {
-  sm_basis_opts bo;
-  sm_basis_opts_default(&bo, kind, k);
-  if (kind == SM_BASIS_ELASTIC) bo.eta = o->eta;
-  bo.cancel = o->cancel;
-  bo.cancel_ud = o->cancel_ud;
-  double t0 = sm_now();
-  int rc = sm_basis_compute(m, &bo, b, err);
-  *t = sm_now() - t0;
-  return rc;
-}
-
-int sm_shape_prepare(const sm_mesh *input, const sm_shape_opts *o, sm_shape **out,
-                     sm_error *err) {
-  *out = NULL;
-  double t0 = sm_now();
-  sm_mesh *m = NULL;
-  sm_basis *lb = NULL, *el = NULL;
-  double t_lb = 0, t_el = 0;
-  int rc = sm_mesh_clean(input, NULL, &m, NULL, err);
-  if (!rc) rc = sm_mesh_normalize(m, err);
-  double t_clean = sm_now() - t0;
-  if (!rc && (o->k_lb < 2 || o->k_lb >= m->nv))
-    rc = sm_error_set(err, SM_EINVAL, "k_lb = %d must be in [2, %d) for this mesh", o->k_lb,
-                      m->nv);
-  if (!rc) rc = compute_basis(m, SM_BASIS_LB, o->k_lb, o, &lb, &t_lb, err);
-  if (!rc && o->k_elastic > 0)
-    rc = compute_basis(m, SM_BASIS_ELASTIC, o->k_elastic, o, &el, &t_el, err);
-  if (rc) {
-    sm_mesh_destroy(m);
-    sm_basis_destroy(lb);
-    return rc;
-  }
-  rc = sm_shape_assemble(m, lb, el, o->n_desc, out, err);
-  if (!rc) {
-    (*out)->t_clean = t_clean;
-    (*out)->t_lb = t_lb;
-    (*out)->t_elastic = t_el;
-  }
-  return rc;
-}
-
 void sm_match_opts_default(sm_match_opts *o) {
   memset(o, 0, sizeof *o);
   o->basis = SM_MATCH_ELASTIC;

@@ -62,6 +62,11 @@ typedef struct sm_shape_opts {
   int n_desc;      /* WKS energies */
   int (*cancel)(void *ud);
   void *cancel_ud;
+  /* When set, sm_shape_prepare is sm_prepare(input, prep, out, prep_info) and the fields
+   * above are ignored: how sm_prepare_multires hands its specs and hooks to the coarse
+   * level (sm_prepare.h). */
+  const struct sm_prep_opts *prep;
+  struct sm_prep_info *prep_info;
 } sm_shape_opts;
 
 typedef struct sm_shape {
@@ -79,6 +84,7 @@ typedef struct sm_shape {
 } sm_shape;
 
 void sm_shape_opts_default(sm_shape_opts *o);
+/* sm_prepare (sm_prepare.h) with the specs of k_lb, k_elastic and eta, or with *o->prep. */
 int sm_shape_prepare(const sm_mesh *input, const sm_shape_opts *o, sm_shape **out,
                      sm_error *err);
 /* Adopts already computed parts (e.g. bases loaded from a cache): takes ownership of mesh,

@@ -322,7 +322,7 @@ int main(int argc, char **argv) {
 
   char q[SM_SRV_PATH_MAX + 8];
   sm_limits lim = {s.cfg.max_vertices, s.cfg.max_faces};
-  sm_store_key def = {s.cfg.default_k, s.cfg.default_k, SM_SHELL_DEFAULT_ETA};
+  sm_store_key def = sm_store_key_make(s.cfg.default_k, s.cfg.default_k, SM_SHELL_DEFAULT_ETA);
   sm_error err;
   uint64_t t0 = sm_srv_now_ns();
   if (sm_store_open(s.cfg.data_dir, s.cfg.cache_bytes, &lim, &def, &s.store, &err)) {

@@ -140,8 +140,7 @@ static int acquire(sm_job *j, const uint8_t id[32], const sm_store_key *k, const
 }
 
 static sm_store_key default_key(const sm_server *s) {
-  sm_store_key k = {s->cfg.default_k, s->cfg.default_k, SM_SHELL_DEFAULT_ETA};
-  return k;
+  return sm_store_key_make(s->cfg.default_k, s->cfg.default_k, SM_SHELL_DEFAULT_ETA);
 }
 
 /* ------------------------------------------------------------------ PUT_SHAPE */
@@ -188,11 +187,11 @@ static int op_prepare(sm_job *j, const uint8_t *p, size_t n, result *r) {
   int rc = sm_proto_dec_prepare_req(p, n, &q);
   if (rc) return fail(r, SM_ST_BAD_REQUEST, 0, "PREPARE: %s", sm_proto_strerror(rc));
   const sm_srv_config *cfg = &j->srv->cfg;
-  sm_store_key k = default_key(j->srv);
-  if (q.k_lb) k.k_lb = q.k_lb;
-  if (q.k_elastic) k.k_el = q.k_elastic;
-  if (q.eta != 0) k.eta = q.eta;
-  if ((uint32_t)k.k_lb > cfg->max_k || (uint32_t)k.k_el > cfg->max_k)
+  sm_store_key k = sm_store_key_make(q.k_lb ? q.k_lb : cfg->default_k,
+                                     q.k_elastic ? q.k_elastic : cfg->default_k,
+                                     q.eta != 0 ? q.eta : SM_SHELL_DEFAULT_ETA);
+  if ((uint32_t)sm_store_key_k(&k, SM_BASIS_LB) > cfg->max_k ||
+      (uint32_t)sm_store_key_k(&k, SM_BASIS_ELASTIC) > cfg->max_k)
     return fail(r, SM_ST_LIMIT_EXCEEDED, cfg->max_k, "PREPARE: k above max_k = %u", cfg->max_k);
   sm_prepared *pr = NULL;
   sm_store_prep_info info;
@@ -202,7 +201,9 @@ static int op_prepare(sm_job *j, const uint8_t *p, size_t n, result *r) {
       .n_vertices = (uint32_t)s->mesh->nv, .n_faces = (uint32_t)s->mesh->nf,
       .k_lb = (uint16_t)s->lb->k, .k_elastic = (uint16_t)(s->elastic ? s->elastic->k : 0),
       .flags = info.cached ? SM_PREP_R_CACHED : 0, .t_clean_us = info.t_clean_us,
-      .t_lb_us = info.t_lb_us, .t_elastic_us = info.t_elastic_us, .t_desc_us = info.t_desc_us};
+      .t_lb_us = sm_store_info_basis_us(&info, &k, SM_BASIS_LB),
+      .t_elastic_us = sm_store_info_basis_us(&info, &k, SM_BASIS_ELASTIC),
+      .t_desc_us = info.t_desc_us};
   sm_store_release(j->srv->store, pr);
   if (!room(r, 48)) return fail(r, SM_ST_INTERNAL, 0, "out of memory");
   sm_proto_enc_prepare_resp(r->payload, 48, NULL, &o);
@@ -230,9 +231,8 @@ static int match_opts(sm_job *j, const sm_proto_match_req *q, sm_match_opts *mo,
                 cfg->max_k);
   if (mo->k0 > mo->k1)
     return fail(r, SM_ST_BAD_REQUEST, 0, "k0 = %d > k1 = %d", mo->k0, mo->k1);
-  *key = default_key(j->srv);
-  if (mo->k1 > key->k_lb) key->k_lb = key->k_el = mo->k1;
-  if (q->eta != 0) key->eta = q->eta;
+  int kb = mo->k1 > (int)cfg->default_k ? mo->k1 : (int)cfg->default_k;
+  *key = sm_store_key_make(kb, kb, q->eta != 0 ? q->eta : SM_SHELL_DEFAULT_ETA);
   mo->cancel = cancel_cb;
   mo->cancel_ud = j;
   return 0;
@@ -258,7 +258,9 @@ static int acquire_pair(sm_job *j, const uint8_t *x, const uint8_t *y, const sm_
 }
 
 static uint64_t prep_us(const sm_store_prep_info *i) {
-  return i->t_clean_us + i->t_lb_us + i->t_elastic_us + i->t_desc_us;
+  uint64_t t = i->t_clean_us + i->t_desc_us;
+  for (int b = 0; b < SM_PREP_MAX_BASES; b++) t += i->t_basis_us[b];
+  return t;
 }
 
 /* Landmarks and initial map arrive in input numbering: translate to cleaned indices. */
@@ -640,7 +642,8 @@ static query_ctx *query_begin(sm_job *j, const uint8_t *p, size_t n, result *r) 
   }
   c->key = default_key(j->srv);
   sm_match_opts_default(&c->mo);
-  c->mo.k1 = c->key.k_lb < c->mo.k1 ? c->key.k_lb : c->mo.k1;
+  int k_lb = sm_store_key_k(&c->key, SM_BASIS_LB);
+  c->mo.k1 = k_lb < c->mo.k1 ? k_lb : c->mo.k1;
   sm_distance_match_opts(&c->mo);
   sm_store_prep_info info;
   if (acquire(j, q.id, &c->key, "QUERY", 0, &c->px, &info, r)) {

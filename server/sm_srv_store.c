@@ -22,8 +22,6 @@
 
 #define NBUCKETS 16384u
 #define PATHBUF (SM_SRV_PATH_MAX + 512) /* dir + subdir + file name */
-#define BASIS_FORMAT 1 /* sm_basis_io's format version, part of the cache file name */
-#define N_DESC 100     /* WKS energies (sm_shape_opts_default) */
 #define LOCK_SPACE ((uint64_t)1 << 40) /* bytes of store.lock that names hash onto */
 #define RECHECKS 4 /* a file that keeps changing under a lookup is taken as it is then */
 
@@ -79,8 +77,6 @@ struct sm_store {
   sm_store_stats s; /* counters; shapes/shapes_bytes/bases_cached/cache_bytes kept live */
 };
 
-static atomic_uint tmp_seq;
-
 static void forget_locked(sm_store *st, entry *e, int files);
 
 /* ---------------------------------------------------------------- helpers */
@@ -102,13 +98,30 @@ static void unlink_entry(sm_store *st, entry *e) {
 }
 
 static int key_eq(const sm_store_key *a, const sm_store_key *b) {
-  return a->k_lb == b->k_lb && a->k_el == b->k_el && !memcmp(&a->eta, &b->eta, sizeof a->eta);
+  if (a->nspec != b->nspec) return 0;
+  for (int i = 0; i < a->nspec; i++)
+    if (!sm_basis_spec_eq(&a->spec[i], &b->spec[i])) return 0;
+  return 1;
 }
 
-static uint64_t dbits(double d) {
-  uint64_t u;
-  memcpy(&u, &d, sizeof u);
-  return u;
+sm_store_key sm_store_key_make(int k_lb, int k_el, double eta) {
+  sm_store_key k;
+  memset(&k, 0, sizeof k);
+  k.nspec = sm_prep_default_specs(k.spec, k_lb, k_el, eta);
+  return k;
+}
+
+int sm_store_key_k(const sm_store_key *key, int kind) {
+  for (int i = 0; i < key->nspec; i++)
+    if (key->spec[i].kind == kind) return key->spec[i].k;
+  return 0;
+}
+
+uint64_t sm_store_info_basis_us(const sm_store_prep_info *info, const sm_store_key *key,
+                                int kind) {
+  for (int i = 0; i < key->nspec; i++)
+    if (key->spec[i].kind == kind) return info->t_basis_us[i];
+  return 0;
 }
 
 static void shape_path(const sm_store *st, const char *hex, char *out, size_t n) {
@@ -133,10 +146,49 @@ static int entry_file_intact(const sm_store *st, const entry *e) {
   return file_sig_of(p, &g) == 0 && !memcmp(&g, &e->sig, sizeof g);
 }
 
-static void basis_path(const sm_store *st, const char *hex, int kind, int k, double eta,
+static void basis_path(const sm_store *st, const char *hex, const sm_basis_spec *spec,
                        char *out, size_t n) {
-  snprintf(out, n, "%s/bases/%s.%s.k%d.eta%016llx.v%d.smb", st->dir, hex,
-           kind == SM_BASIS_LB ? "lb" : "el", k, (unsigned long long)dbits(eta), BASIS_FORMAT);
+  char name[128];
+  sm_basis_spec_name(spec, name, sizeof name);
+  snprintf(out, n, "%s/bases/%s.%s.v%u.smb", st->dir, hex, name, SM_BASIS_FORMAT_VERSION);
+}
+
+static void meta_path(const sm_store *st, const char *hex, char *out, size_t n) {
+  snprintf(out, n, "%s/meta/%s.counts", st->dir, hex);
+}
+
+/* The counts of hex's decoded mesh from meta/ (0), or -1 when absent or not readable as
+ * written by write_meta (then the caller decodes the shape and writes them). */
+static int read_meta(const sm_store *st, const char *hex, uint32_t *nv, uint32_t *nf) {
+  char p[PATHBUF], id[65];
+  meta_path(st, hex, p, sizeof p);
+  FILE *f = fopen(p, "re");
+  if (!f) return -1;
+  unsigned long a = 0, b = 0;
+  int ok = fscanf(f, "%64s %lu %lu", id, &a, &b) == 3 && !strcmp(id, hex) && a > 0 &&
+           a <= UINT32_MAX && b > 0 && b <= UINT32_MAX;
+  fclose(f);
+  if (!ok) return -1;
+  *nv = (uint32_t)a;
+  *nf = (uint32_t)b;
+  return 0;
+}
+
+static int lock_name(const sm_store *st, const char *name, int try, int (*cancel)(void *),
+                     void *ud);
+static void unlock_name(int fd);
+
+/* Under the name's lock, as every write (remove_stale_temp spares a live writer's temp
+ * file). A lost counts file only costs a decode at the next start, so failures are logged. */
+static void write_meta(const sm_store *st, const char *hex, uint32_t nv, uint32_t nf) {
+  char p[PATHBUF], line[128];
+  meta_path(st, hex, p, sizeof p);
+  int len = snprintf(line, sizeof line, "%s %u %u\n", hex, nv, nf);
+  sm_error err;
+  int fd = lock_name(st, strrchr(p, '/') + 1, 0, NULL, NULL);
+  if (sm_file_write_atomic(p, (const uint8_t *)line, (size_t)len, &err))
+    sm_log("warn", "store: cannot write the counts file", " path=%s err=\"%s\"", p, err.msg);
+  unlock_name(fd);
 }
 
 static int mkdir_p(const char *path) {
@@ -150,19 +202,6 @@ static int mkdir_p(const char *path) {
     }
   if (mkdir(buf, 0700) && errno != EEXIST) return -1;
   return 0;
-}
-
-static void fsync_dir_of(const char *path) {
-  char d[PATHBUF];
-  snprintf(d, sizeof d, "%s", path);
-  char *slash = strrchr(d, '/');
-  if (!slash) return;
-  *slash = 0;
-  int fd = open(d, O_RDONLY | O_DIRECTORY);
-  if (fd >= 0) {
-    fsync(fd);
-    close(fd);
-  }
 }
 
 /* ---------------------------------------------------------------- cross-process locks */
@@ -238,55 +277,6 @@ static void remove_stale_temp(const sm_store *st, const char *subdir, const char
   unlock_name(fd);
 }
 
-/* temp + fsync + rename + directory fsync. */
-static int write_atomic(const char *path, const uint8_t *buf, size_t len, sm_error *err) {
-  char tmp[PATHBUF + 64];
-  int fd = -1;
-  for (int tries = 0; tries < 100 && fd < 0; tries++) { /* EEXIST: a dead writer's name */
-    snprintf(tmp, sizeof tmp, "%s.tmp.%ld.%u", path, (long)getpid(),
-             atomic_fetch_add(&tmp_seq, 1u));
-    fd = open(tmp, O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0600);
-    if (fd < 0 && errno != EEXIST) break;
-  }
-  if (fd < 0) return sm_error_set(err, SM_EIO, "%s: %s", tmp, strerror(errno));
-  size_t off = 0;
-  while (off < len) {
-    ssize_t w = write(fd, buf + off, len - off);
-    if (w < 0 && errno == EINTR) continue;
-    if (w <= 0) {
-      int e = errno;
-      close(fd);
-      unlink(tmp);
-      return sm_error_set(err, SM_EIO, "%s: %s", tmp, strerror(e));
-    }
-    off += (size_t)w;
-  }
-  if (fsync(fd) || close(fd)) {
-    int e = errno;
-    unlink(tmp);
-    return sm_error_set(err, SM_EIO, "%s: fsync: %s", tmp, strerror(e));
-  }
-  if (rename(tmp, path)) {
-    int e = errno;
-    unlink(tmp);
-    return sm_error_set(err, SM_EIO, "%s: rename: %s", path, strerror(e));
-  }
-  fsync_dir_of(path);
-  return SM_OK;
-}
-
-static size_t basis_bytes(const sm_basis *b) {
-  if (!b) return 0;
-  size_t n = (size_t)b->n, k = (size_t)b->k;
-  return sizeof *b + 8 * (k + n * k + n + (b->gram_L ? k * k : 0));
-}
-
-static size_t shape_bytes(const sm_shape *s) {
-  size_t nv = (size_t)s->mesh->nv, nf = (size_t)s->mesh->nf;
-  return sizeof *s + nv * 24 + nf * 12 + nv * 4 + basis_bytes(s->lb) + basis_bytes(s->elastic) +
-         nv * (size_t)s->n_desc * 8;
-}
-
 static void prepared_unref_locked(sm_prepared *p) {
   if (--p->refs == 0) {
     sm_shape_destroy(p->shape);
@@ -321,7 +311,7 @@ static void var_evict_locked(sm_store *st, variant *v) {
   lru_unlink(st, v);
   var_unlink(v->e, v);
   st->s.cache_bytes -= v->p->bytes;
-  st->s.bases_cached -= (uint64_t)((v->p->shape->lb ? 1 : 0) + (v->p->shape->elastic ? 1 : 0));
+  st->s.bases_cached -= (uint64_t)sm_shape_nbases(v->p->shape);
   prepared_unref_locked(v->p);
   free(v);
 }
@@ -429,8 +419,16 @@ static entry *index_insert_locked(sm_store *st, const uint8_t id[32], const char
  * st->mu. Returns 1 if the shape is now indexed, 0 if not, -1 out of memory. */
 static int adopt(sm_store *st, const uint8_t id[32], const char *hex) {
   vfile vf;
-  int r = verify_file(st, hex, 1, &vf);
-  if (r == VF_BAD) r = delete_if_bad(st, hex, 1, &vf);
+  uint32_t nv, nf;
+  int counted = read_meta(st, hex, &nv, &nf) == 0;
+  int r = verify_file(st, hex, !counted, &vf);
+  if (r == VF_BAD) r = delete_if_bad(st, hex, !counted, &vf);
+  if (r == VF_OK && counted) {
+    vf.nv = nv;
+    vf.nf = nf;
+  } else if (r == VF_OK) {
+    write_meta(st, hex, vf.nv, vf.nf);
+  }
   if (r == VF_BAD) {
     sm_log("warn", "store: corrupt shape file deleted", " id=%s err=\"%s\"", hex, vf.why);
   } else if (r == VF_UNREADABLE) {
@@ -489,8 +487,9 @@ int sm_store_open(const char *dir, uint64_t cache_bytes, const sm_limits *lim,
   pthread_mutex_init(&st->mu, NULL);
   pthread_cond_init(&st->cv, NULL);
   char p[SM_SRV_PATH_MAX + 16];
-  for (int i = 0; i < 2; i++) {
-    snprintf(p, sizeof p, "%s/%s", dir, i ? "bases" : "shapes");
+  static const char *const subdirs[] = {"shapes", "bases", "meta"};
+  for (int i = 0; i < 3; i++) {
+    snprintf(p, sizeof p, "%s/%s", dir, subdirs[i]);
     if (mkdir_p(p)) {
       int e = errno;
       sm_store_close(st);
@@ -519,12 +518,14 @@ int sm_store_open(const char *dir, uint64_t cache_bytes, const sm_limits *lim,
       return sm_error_set(err, SM_ENOMEM, "store: out of memory while scanning");
     }
   closedir(d);
-  /* Leftover temp files of interrupted basis writes. */
-  snprintf(p, sizeof p, "%s/bases", dir);
-  if ((d = opendir(p))) {
-    while ((de = readdir(d)))
-      if (strstr(de->d_name, ".tmp.")) remove_stale_temp(st, "bases", de->d_name);
-    closedir(d);
+  /* Leftover temp files of interrupted basis and counts writes. */
+  for (int i = 1; i < 3; i++) {
+    snprintf(p, sizeof p, "%s/%s", dir, subdirs[i]);
+    if ((d = opendir(p))) {
+      while ((de = readdir(d)))
+        if (strstr(de->d_name, ".tmp.")) remove_stale_temp(st, subdirs[i], de->d_name);
+      closedir(d);
+    }
   }
   *out = st;
   return SM_OK;
@@ -569,7 +570,8 @@ static int stored_file_matches(const sm_store *st, const char *hex, const uint8_
  * the eigensolvers need clearly more vertices than basis functions. */
 static int check_preparable(const sm_store *st, const sm_mesh *c, const sm_clean_report *rep,
                             sm_error *err) {
-  int k = st->def.k_lb > st->def.k_el ? st->def.k_lb : st->def.k_el;
+  int k = 0;
+  for (int i = 0; i < st->def.nspec; i++) k = st->def.spec[i].k > k ? st->def.spec[i].k : k;
   if (st->max_components && (uint32_t)rep->components > st->max_components)
     return sm_error_set(err, SM_STORE_ECOMPONENTS,
                         "the mesh has %d connected components after cleaning; this daemon "
@@ -598,7 +600,7 @@ static int write_shape_file(sm_store *st, const char *hex, const uint8_t *draco,
     return sm_error_set(err, SM_EIO, "%s: cannot lock: %s", st->lockpath, strerror(errno));
   int rc = SM_OK;
   if (!stored_file_matches(st, hex, draco, len)) {
-    rc = write_atomic(path, draco, len, err);
+    rc = sm_file_write_atomic(path, draco, len, err);
     *wrote = rc == SM_OK;
   }
   unlock_name(fd);
@@ -666,6 +668,8 @@ int sm_store_put(sm_store *st, const uint8_t id[32], const uint8_t *draco, size_
   char path[PATHBUF];
   rc = write_shape_file(st, hex, draco, len, &wrote, err);
   if (rc) return rc;
+  uint32_t mnv, mnf;
+  if (wrote || read_meta(st, hex, &mnv, &mnf)) write_meta(st, hex, vf.nv, vf.nf);
   shape_path(st, hex, path, sizeof path);
   if (file_sig_of(path, &vf.sig)) memset(&vf.sig, 0, sizeof vf.sig);
 
@@ -738,10 +742,9 @@ int sm_store_has(sm_store *st, const uint8_t id[32], uint32_t *nv, uint32_t *nf,
   if (e && !*prepared) { /* bases on disk count as prepared */
     char p[PATHBUF];
     struct stat sb;
-    basis_path(st, hex, SM_BASIS_LB, st->def.k_lb, 0.0, p, sizeof p);
-    int ok = stat(p, &sb) == 0;
-    if (ok && st->def.k_el > 0) {
-      basis_path(st, hex, SM_BASIS_ELASTIC, st->def.k_el, st->def.eta, p, sizeof p);
+    int ok = 1;
+    for (int i = 0; ok && i < st->def.nspec; i++) {
+      basis_path(st, hex, &st->def.spec[i], p, sizeof p);
       ok = stat(p, &sb) == 0;
     }
     *prepared = ok;
@@ -784,6 +787,8 @@ static void forget_locked(sm_store *st, entry *e, int files) {
    * its fresh file deleted afterwards. */
   shape_path(st, hex, p, sizeof p);
   unlink(p);
+  meta_path(st, hex, p, sizeof p);
+  unlink(p);
   unlink_bases(st, hex);
 }
 
@@ -823,125 +828,130 @@ static int not_stored(sm_error *err, int verdict) {
 
 static uint64_t us_since(uint64_t t0) { return (sm_srv_now_ns() - t0) / 1000; }
 
-/* Loads a verified basis from disk or computes and saves it. */
-static int load_or_compute_basis(sm_store *st, const char *path, const sm_mesh *m, int kind,
-                                 int k, double eta, int (*cancel)(void *), void *ud,
-                                 sm_basis **out, sm_store_prep_info *info, uint64_t *t_us,
-                                 sm_error *err) {
-  uint64_t t0 = sm_srv_now_ns();
-  struct stat sb;
-  if (stat(path, &sb) == 0) {
-    sm_basis *b = NULL;
-    sm_error lerr;
-    int rc = sm_basis_load(path, &b, &lerr);
-    if (!rc && (b->kind != kind || b->k != k || b->n != m->nv ||
-                b->mesh_hash != sm_mesh_hash(m) || (kind == SM_BASIS_ELASTIC && b->eta != eta))) {
-      rc = sm_error_set(&lerr, SM_EFORMAT, "basis does not belong to this shape/key");
-      sm_basis_destroy(b);
-      b = NULL;
-    }
-    if (!rc) {
-      *out = b;
-      info->bases_loaded++;
-      *t_us = us_since(t0);
-      pthread_mutex_lock(&st->mu);
-      st->s.bases_loaded++;
-      pthread_mutex_unlock(&st->mu);
-      return SM_OK;
-    }
-    sm_log("warn", "store: corrupt basis file deleted, recomputing", " path=%s err=\"%s\"",
-           path, lerr.msg);
-    unlink(path);
-    pthread_mutex_lock(&st->mu);
-    st->s.bases_corrupt++;
-    pthread_mutex_unlock(&st->mu);
-  }
-  sm_basis_opts bo;
-  sm_basis_opts_default(&bo, kind, k);
-  if (kind == SM_BASIS_ELASTIC) bo.eta = eta;
-  bo.cancel = cancel;
-  bo.cancel_ud = ud;
-  int rc = sm_basis_compute(m, &bo, out, err);
-  *t_us = us_since(t0);
-  if (rc) return rc;
-  info->bases_computed++;
+/* sm_prepare's hooks (sm_prepare.h): bases come from and go to bases/. A missing basis is
+ * computed under its file's lock, taken by load and released by save, so a daemon sharing
+ * the data directory that needs the same basis waits and loads the file instead of
+ * computing it again (single-flight across daemons, as store->cv is within one). */
+typedef struct prep_io {
+  sm_store *st;
+  const char *hex;
+  int (*cancel)(void *);
+  void *ud;
+  sm_basis_spec held[SM_PREP_MAX_BASES]; /* specs whose lock is held ... */
+  int fd[SM_PREP_MAX_BASES];             /* ... and its descriptor (-1: none) */
+  int nheld;
+} prep_io;
+
+static void count(sm_store *st, uint64_t *counter) {
   pthread_mutex_lock(&st->mu);
-  st->s.bases_computed++;
+  (*counter)++;
   pthread_mutex_unlock(&st->mu);
-  sm_error serr;
-  if (sm_basis_save(*out, path, &serr))
-    sm_log("warn", "store: cannot save basis", " path=%s err=\"%s\"", path, serr.msg);
-  return SM_OK;
 }
 
-/* load_or_compute_basis under the basis file's lock: a daemon sharing the data directory
- * that needs the same basis waits for it and loads the file instead of computing it
- * again (single-flight across daemons, as store->cv is within one). */
-static int get_basis(sm_store *st, const char *hex, const sm_mesh *m, int kind, int k,
-                     double eta, int (*cancel)(void *), void *ud, sm_basis **out,
-                     sm_store_prep_info *info, uint64_t *t_us, sm_error *err) {
+/* The verified basis file, or NULL (a file that fails is deleted, counted bases_corrupt). */
+static sm_basis *load_file(sm_store *st, const char *path, const sm_basis_spec *spec,
+                           const sm_mesh *m) {
+  struct stat sb;
+  if (stat(path, &sb)) return NULL;
+  sm_basis *b = NULL;
+  sm_error lerr;
+  int rc = sm_basis_load(path, &b, &lerr);
+  if (!rc) rc = sm_basis_fits(b, spec, m, &lerr);
+  if (!rc) return b;
+  sm_basis_destroy(b);
+  sm_log("warn", "store: corrupt basis file deleted, recomputing", " path=%s err=\"%s\"", path,
+         lerr.msg);
+  unlink(path);
+  count(st, &st->s.bases_corrupt);
+  return NULL;
+}
+
+static int io_load(void *ud, const sm_basis_spec *spec, const sm_mesh *m, sm_basis **out,
+                   sm_error *err) {
+  prep_io *io = ud;
   char path[PATHBUF];
-  basis_path(st, hex, kind, k, kind == SM_BASIS_LB ? 0.0 : eta, path, sizeof path);
-  uint64_t t0 = sm_srv_now_ns();
-  int fd = lock_name(st, strrchr(path, '/') + 1, 0, cancel, ud);
-  if (fd < 0 && errno == ECANCELED) {
-    *t_us = us_since(t0);
+  basis_path(io->st, io->hex, spec, path, sizeof path);
+  int fd = lock_name(io->st, strrchr(path, '/') + 1, 0, io->cancel, io->ud);
+  if (fd < 0 && errno == ECANCELED)
     return sm_error_set(err, SM_ECANCELED, "cancelled while another daemon computed the basis");
-  }
   if (fd < 0) /* no lock: at worst the basis is computed twice (the rename is atomic) */
-    sm_log("warn", "store: cannot lock, computing without", " path=%s err=\"%s\"", st->lockpath,
-           strerror(errno));
-  int rc = load_or_compute_basis(st, path, m, kind, k, eta, cancel, ud, out, info, t_us, err);
-  *t_us = us_since(t0); /* includes the wait */
-  unlock_name(fd);
-  return rc;
+    sm_log("warn", "store: cannot lock, computing without", " path=%s err=\"%s\"",
+           io->st->lockpath, strerror(errno));
+  if ((*out = load_file(io->st, path, spec, m))) {
+    unlock_name(fd);
+    count(io->st, &io->st->s.bases_loaded);
+    return 1;
+  }
+  io->held[io->nheld] = *spec;
+  io->fd[io->nheld++] = fd;
+  return 0;
+}
+
+static void io_save(void *ud, const sm_basis_spec *spec, const sm_basis *b) {
+  prep_io *io = ud;
+  char path[PATHBUF];
+  basis_path(io->st, io->hex, spec, path, sizeof path);
+  sm_error serr;
+  if (b) count(io->st, &io->st->s.bases_computed);
+  if (b && sm_basis_save(b, path, &serr))
+    sm_log("warn", "store: cannot save basis", " path=%s err=\"%s\"", path, serr.msg);
+  for (int i = 0; i < io->nheld; i++)
+    if (sm_basis_spec_eq(&io->held[i], spec)) {
+      unlock_name(io->fd[i]);
+      io->fd[i] = -1;
+    }
+}
+
+/* The stored bytes of hex, checked against their name (SM_STORE_ECORRUPT otherwise). */
+static int read_shape(sm_store *st, const char *hex, uint8_t **buf, size_t *len,
+                      sm_error *err) {
+  char path[PATHBUF];
+  shape_path(st, hex, path, sizeof path);
+  if (sm_read_file_bytes(path, (size_t)1 << 34, buf, len, err)) return SM_STORE_ECORRUPT;
+  uint8_t id[32];
+  char h2[65];
+  sm_sha256(*buf, *len, id);
+  sm_hex(id, 32, h2);
+  if (strcmp(h2, hex)) {
+    free(*buf);
+    *buf = NULL;
+    return sm_error_set(err, SM_STORE_ECORRUPT, "%s: content does not match its id", path);
+  }
+  return SM_OK;
 }
 
 static int compute_variant(sm_store *st, const char *hex, const sm_store_key *key,
                            int (*cancel)(void *), void *ud, sm_prepared **out,
                            sm_store_prep_info *info, sm_error *err) {
-  char path[PATHBUF];
-  shape_path(st, hex, path, sizeof path);
   uint8_t *buf = NULL;
   size_t len = 0;
   uint64_t t0 = sm_srv_now_ns();
-  int rc = sm_read_file_bytes(path, (size_t)1 << 34, &buf, &len, err);
-  if (rc) return SM_STORE_ECORRUPT;
-  uint8_t id[32];
-  char h2[65];
-  sm_sha256(buf, len, id);
-  sm_hex(id, 32, h2);
-  if (strcmp(h2, hex)) {
-    free(buf);
-    return sm_error_set(err, SM_STORE_ECORRUPT, "%s: content does not match its id", path);
-  }
-  sm_mesh *raw = NULL, *m = NULL;
+  int rc = read_shape(st, hex, &buf, &len, err);
+  if (rc) return rc;
+  sm_mesh *raw = NULL;
   rc = sm_draco_decode(buf, len, &st->lim, &raw, err);
   free(buf);
-  if (!rc) rc = sm_mesh_clean(raw, &st->lim, &m, NULL, err);
-  sm_mesh_destroy(raw);
-  if (!rc) rc = sm_mesh_normalize(m, err);
-  info->t_clean_us = us_since(t0);
-  if (!rc && (key->k_lb < 2 || key->k_lb >= m->nv))
-    rc = sm_error_set(err, SM_EINVAL, "k_lb = %d must be in [2, %d) for this mesh", key->k_lb,
-                      m->nv);
-  sm_basis *lb = NULL, *el = NULL;
-  if (!rc)
-    rc = get_basis(st, hex, m, SM_BASIS_LB, key->k_lb, 0.0, cancel, ud, &lb, info,
-                   &info->t_lb_us, err);
-  if (!rc && key->k_el > 0)
-    rc = get_basis(st, hex, m, SM_BASIS_ELASTIC, key->k_el, key->eta, cancel, ud, &el, info,
-                   &info->t_elastic_us, err);
-  if (rc) {
-    sm_mesh_destroy(m);
-    sm_basis_destroy(lb);
-    sm_basis_destroy(el);
-    return rc;
-  }
+  uint64_t t_decode = us_since(t0);
+  prep_io io = {.st = st, .hex = hex, .cancel = cancel, .ud = ud};
+  sm_prep_hooks hooks = {io_load, io_save, &io};
+  sm_prep_opts po;
+  sm_prep_opts_default(&po);
+  memcpy(po.spec, key->spec, sizeof po.spec);
+  po.nspec = key->nspec;
+  po.lim = &st->lim;
+  po.hooks = &hooks;
+  po.cancel = cancel;
+  po.cancel_ud = ud;
+  sm_prep_info pi;
+  memset(&pi, 0, sizeof pi);
   sm_shape *s = NULL;
-  uint64_t t1 = sm_srv_now_ns();
-  rc = sm_shape_assemble(m, lb, el, N_DESC, &s, err); /* takes m, lb, el */
-  info->t_desc_us = us_since(t1);
+  if (!rc) rc = sm_prepare(raw, &po, &s, &pi, err);
+  sm_mesh_destroy(raw);
+  info->t_clean_us = t_decode + (uint64_t)(pi.t_clean * 1e6);
+  for (int i = 0; i < key->nspec; i++) info->t_basis_us[i] = (uint64_t)(pi.t_basis[i] * 1e6);
+  info->t_desc_us = (uint64_t)(pi.t_desc * 1e6);
+  info->bases_loaded = pi.loaded;
+  info->bases_computed = pi.computed;
   if (rc) return rc;
   sm_prepared *p = calloc(1, sizeof *p);
   if (!p) {
@@ -949,7 +959,7 @@ static int compute_variant(sm_store *st, const char *hex, const sm_store_key *ke
     return sm_error_set(err, SM_ENOMEM, "store: out of memory");
   }
   p->shape = s;
-  p->bytes = shape_bytes(s);
+  p->bytes = sm_shape_bytes(s);
   *out = p;
   return SM_OK;
 }
@@ -1069,7 +1079,7 @@ int sm_store_acquire(sm_store *st, const uint8_t id[32], const sm_store_key *key
       e->vars = v;
       lru_push(st, v);
       st->s.cache_bytes += p->bytes;
-      st->s.bases_cached += (uint64_t)((p->shape->lb ? 1 : 0) + (p->shape->elastic ? 1 : 0));
+      st->s.bases_cached += (uint64_t)sm_shape_nbases(p->shape);
       *out = p;
       while (st->s.cache_bytes > st->budget && st->lru_tail && st->lru_tail != v) {
         st->s.evictions++;

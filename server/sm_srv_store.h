@@ -1,16 +1,24 @@
 /* sm_srv_store: the shape store (content-addressed Draco files) and the cache of prepared
- * shapes (cleaned mesh + bases + descriptors), with single-flight preparation.
+ * shapes (cleaned mesh + bases + descriptors), with single-flight preparation. The
+ * preparation itself is core's (sm_prepare.h): the store supplies the bases it has on disk
+ * and keeps the new ones through sm_prepare's hooks, and knows nothing of the steps.
  *
  * DESIGN
  *   Disk (the data directory; everything survives a restart):
  *     shapes/<id-hex>.drc                          the Draco bytes as uploaded
- *     bases/<id-hex>.<lb|el>.k<k>.eta<eta-bits-hex>.v<format>.smb
- *                                                  one computed basis (sm_basis_save:
- *                                                  versioned, XXH3-checksummed)
- *     Every file is written to a unique temp name in the same directory, fsynced, renamed
- *     over its final name and the directory fsynced, so a crash leaves either the old
- *     state or the complete new file. At startup shapes/ is scanned: each file's SHA-256
- *     must equal its name and it must decode, else it is deleted (counted shapes_corrupt).
+ *     meta/<id-hex>.counts                         "<id-hex> <vertices> <faces>\n" of the
+ *                                                  decoded mesh, written at PUT
+ *     bases/<id-hex>.<spec>.v<format>.smb          one computed basis (sm_basis_save:
+ *                                                  versioned, XXH3-checksummed); <spec> is
+ *                                                  sm_basis_spec_name, e.g. el.k100.eta<bits>
+ *     Every file is written by sm_file_write_atomic (core/sm_basis_io.c: a unique temp
+ *     name in the same directory, fsynced, renamed over its final name, the directory
+ *     fsynced), so a crash leaves either the old state or the complete new file. At
+ *     startup shapes/ is scanned: each file's SHA-256 must equal its name, else it is
+ *     deleted (counted shapes_corrupt). The counts come from meta/ (a shape's bytes
+ *     decoded at PUT, and the SHA-256 says they are the same bytes), so startup decodes
+ *     only shapes without a readable counts file (stored by an older daemon), and writes
+ *     theirs.
  *     A basis file is verified when loaded (magic, version, checksum, sizes, kind, k, eta
  *     and the XXH3 hash of the cleaned mesh it belongs to); a file that fails is deleted,
  *     recomputed and rewritten (counted bases_corrupt), never served.
@@ -52,6 +60,7 @@
 #include "sm_error.h"
 #include "sm_match.h"
 #include "sm_mesh.h"
+#include "sm_prepare.h"
 
 enum {
   SM_STORE_ENOTFOUND = -100,
@@ -63,17 +72,28 @@ enum {
 typedef struct sm_store sm_store;
 typedef struct sm_prepared sm_prepared;
 
+/* A prepared variant of a shape: the bases sm_prepare computes (sm_prepare.h). */
 typedef struct sm_store_key {
-  int k_lb, k_el; /* k_el 0 = no elastic basis */
-  double eta;
+  sm_basis_spec spec[SM_PREP_MAX_BASES];
+  int nspec;
 } sm_store_key;
 
 typedef struct sm_store_prep_info {
   int cached;                 /* 1: nothing was computed or loaded by this call */
   int waited;                 /* 1: waited for another worker's computation */
-  uint64_t t_clean_us, t_lb_us, t_elastic_us, t_desc_us; /* spent by this call */
+  uint64_t t_clean_us, t_desc_us; /* spent by this call */
+  uint64_t t_basis_us[SM_PREP_MAX_BASES]; /* per key spec, loading or computing */
   int bases_loaded, bases_computed;
 } sm_store_prep_info;
+
+/* The key of the shipped preparation (sm_prep_default_specs: LB k_lb, elastic k_el with
+ * eta when k_el > 0). */
+sm_store_key sm_store_key_make(int k_lb, int k_el, double eta);
+/* k of the key's basis of kind, 0 if it has none. */
+int sm_store_key_k(const sm_store_key *key, int kind);
+/* Microseconds this call spent on the key's basis of kind (0 if none). */
+uint64_t sm_store_info_basis_us(const sm_store_prep_info *info, const sm_store_key *key,
+                                int kind);
 
 typedef struct sm_store_stats {
   uint64_t shapes, shapes_bytes, bases_cached, cache_bytes;
