@@ -11,7 +11,6 @@ PKGS=(
   zlib1g-dev               # reading .gz mesh files
   libxxhash-dev            # XXH3 checksums of stored files
   libsuitesparse-dev       # CHOLMOD sparse Cholesky
-  libarpack2-dev           # ARPACK-ng shift-invert Lanczos
   liblapacke-dev libopenblas-dev  # dense algebra
   python3 python3-numpy python3-scipy  # reference evaluator in ../shared/tools
   python3-matplotlib       # the evaluation suite's plots (bench/eval)
