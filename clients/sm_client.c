@@ -349,10 +349,7 @@ static int send_req(sm_client *c, uint8_t op, const void *m, uint32_t *rid,
 
 /* Requests that go through the server's job queue: their answer may wait behind other
  * clients' computations for any time, so they are not bounded by io_timeout_ms. */
-static int is_compute(uint8_t op) {
-  return op == SM_OP_PREPARE || op == SM_OP_MATCH || op == SM_OP_DISTANCE ||
-         op == SM_OP_QUERY || op == SM_OP_PUT_SHAPE;
-}
+static int is_compute(uint8_t op) { return (sm_proto_op_flags(op) & SM_OPF_QUEUED) != 0; }
 
 /* Waits for the next frame of a queued request. deadline: the caller's limit (-1 none).
  * A queued request is not a dead connection: after io_timeout_ms without any frame the

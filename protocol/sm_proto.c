@@ -286,10 +286,34 @@ static int stat_name_ok(const char *name, size_t cap) {
   return 1;
 }
 
-int sm_proto_batch_op_allowed(uint8_t op) {
-  return op == SM_OP_PING || op == SM_OP_HAS_SHAPE || op == SM_OP_PREPARE ||
-         op == SM_OP_MATCH || op == SM_OP_DISTANCE || op == SM_OP_QUERY;
-}
+/* The opcode table (sm_proto.h). */
+typedef struct op_info {
+  const char *name;
+  unsigned flags;
+} op_info;
+enum { REQ = SM_OPF_REQUEST, Q = SM_OPF_QUEUED, B = SM_OPF_BATCHABLE };
+static const op_info op_table[SM_OP_MAX_ + 1] = {
+  [0] = {"INVALID", 0},
+  [SM_OP_HELLO] = {"HELLO", REQ},
+  [SM_OP_PING] = {"PING", REQ | B},
+  [SM_OP_STATS] = {"STATS", REQ},
+  [SM_OP_PUT_SHAPE] = {"PUT_SHAPE", REQ | Q},
+  [SM_OP_HAS_SHAPE] = {"HAS_SHAPE", REQ | B},
+  [SM_OP_DROP_SHAPE] = {"DROP_SHAPE", REQ},
+  [SM_OP_PREPARE] = {"PREPARE", REQ | Q | B},
+  [SM_OP_MATCH] = {"MATCH", REQ | Q | B},
+  [SM_OP_DISTANCE] = {"DISTANCE", REQ | Q | B},
+  [SM_OP_QUERY] = {"QUERY", REQ | Q | B},
+  [SM_OP_BATCH] = {"BATCH", REQ | Q},
+  [SM_OP_CANCEL] = {"CANCEL", REQ},
+  [SM_OP_GOAWAY] = {"GOAWAY", SM_OPF_SERVER},
+};
+
+unsigned sm_proto_op_flags(uint8_t op) { return op <= SM_OP_MAX_ ? op_table[op].flags : 0; }
+
+const char *sm_proto_op_name(uint8_t op) { return op <= SM_OP_MAX_ ? op_table[op].name : "UNKNOWN"; }
+
+static int batch_op_allowed(uint8_t op) { return (sm_proto_op_flags(op) & SM_OPF_BATCHABLE) != 0; }
 
 static int i32s_min_ok(const sm_proto_i32s *a, int32_t lo) {
   for (uint32_t i = 0; i < a->count; i++)
@@ -830,7 +854,7 @@ ptrdiff_t sm_proto_enc_batch_req(uint8_t *buf, size_t cap, const sm_proto_header
   sm_proto_batch_item it;
   uint32_t k = 0;
   while (sm_proto_batch_next(m, &pos, &it)) {
-    if (!sm_proto_batch_op_allowed(it.opcode) || (it.len && !it.payload)) return SM_PROTO_EINVAL;
+    if (!batch_op_allowed(it.opcode) || (it.len && !it.payload)) return SM_PROTO_EINVAL;
     k++;
   }
   if (k != m->count) return SM_PROTO_EINVAL;
@@ -859,7 +883,7 @@ int sm_proto_dec_batch_req(const uint8_t *p, size_t n, sm_proto_batch_req *m) {
     if (n - pos < 8) return SM_PROTO_ELENGTH;
     const uint8_t *q = p + pos;
     uint32_t len = ld32(q + 4);
-    if (!sm_proto_batch_op_allowed(q[0])) return SM_PROTO_EOPCODE;
+    if (!batch_op_allowed(q[0])) return SM_PROTO_EOPCODE;
     if (q[1] != 0 || ld16(q + 2) != 0) return SM_PROTO_EFIELD;
     if (n - pos - 8 < len) return SM_PROTO_ELENGTH;
     pos += 8 + (size_t)len;
@@ -869,7 +893,7 @@ int sm_proto_dec_batch_req(const uint8_t *p, size_t n, sm_proto_batch_req *m) {
 ptrdiff_t sm_proto_enc_batch_item_resp(uint8_t *buf, size_t cap, const sm_proto_header *hdr,
                                        const sm_proto_batch_item_resp *m) {
   wr w;
-  if (!sm_proto_batch_op_allowed(m->opcode) || (m->len && !m->payload) ||
+  if (!batch_op_allowed(m->opcode) || (m->len && !m->payload) ||
       begin(&w, buf, cap, hdr, 1))
     return SM_PROTO_EINVAL;
   w_u32(&w, m->index);
@@ -886,7 +910,7 @@ int sm_proto_dec_batch_item_resp(const uint8_t *p, size_t n, sm_proto_batch_item
   m->opcode = p[4];
   m->payload = p + 8;
   m->len = (uint32_t)(n - 8);
-  if (!sm_proto_batch_op_allowed(m->opcode)) return SM_PROTO_EOPCODE;
+  if (!batch_op_allowed(m->opcode)) return SM_PROTO_EOPCODE;
   if (p[5] != 0 || ld16(p + 6) != 0) return SM_PROTO_EFIELD;
   return 0;
 }
@@ -1002,14 +1026,6 @@ const char *sm_proto_status_name(uint16_t st) {
   case SM_ST_OVERLOADED: return "OVERLOADED";
   default: return sm_proto_status_is_fatal(st) ? "UNKNOWN_FATAL" : "UNKNOWN";
   }
-}
-
-const char *sm_proto_op_name(uint8_t op) {
-  static const char *const names[] = {"INVALID",    "HELLO",      "PING",    "STATS",
-                                      "PUT_SHAPE",  "HAS_SHAPE",  "DROP_SHAPE", "PREPARE",
-                                      "MATCH",      "DISTANCE",   "QUERY",   "BATCH",
-                                      "CANCEL",     "GOAWAY"};
-  return op <= SM_OP_MAX_ ? names[op] : "UNKNOWN";
 }
 
 uint16_t sm_proto_status_for_error(int err) {

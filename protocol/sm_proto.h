@@ -99,6 +99,22 @@ enum sm_proto_op {
   SM_OP_MAX_ = 13
 };
 
+/* What each opcode is (PROTOCOL.md 3): one table, read by the codec, the server and the
+ * clients, so that an opcode is described in one place.
+ *   direction: SM_OPF_REQUEST (a client sends it, the server answers) or SM_OPF_SERVER
+ *     (the server sends it unasked: GOAWAY);
+ *   SM_OPF_QUEUED: the server runs it on a worker behind the job queue, so its answer may
+ *     wait for other clients' computations; without it the loop thread answers at once;
+ *   SM_OPF_BATCHABLE: it may be an item of a BATCH. */
+enum {
+  SM_OPF_REQUEST = 1u << 0,
+  SM_OPF_SERVER = 1u << 1,
+  SM_OPF_QUEUED = 1u << 2,
+  SM_OPF_BATCHABLE = 1u << 3
+};
+/* The flags of opcode; 0 for 0 and unknown opcodes. */
+unsigned sm_proto_op_flags(uint8_t opcode);
+
 /* Header flags (bytes 6..7). Every other bit must be 0. */
 enum {
   SM_PROTO_F_RESPONSE = 1u << 0,
@@ -338,7 +354,6 @@ typedef struct sm_proto_batch_req {
 /* Iterates a decoded (or natively given) batch: *pos starts at 0; returns 1 with *it
  * filled, 0 at the end. */
 int sm_proto_batch_next(const sm_proto_batch_req *b, size_t *pos, sm_proto_batch_item *it);
-int sm_proto_batch_op_allowed(uint8_t opcode);
 /* One frame per item (flags MORE, status = the item's status). */
 typedef struct sm_proto_batch_item_resp {
   uint32_t index;

@@ -3,8 +3,10 @@
  * DESIGN (threads and locks; memcached doc/threads.txt style)
  *   Threads
  *     - the loop thread (main): epoll loop, every socket, every sm_conn, the in-flight
- *       tables, HELLO/PING/STATS/HAS/DROP/CANCEL (answered inline, never queued);
- *     - N worker threads (sm_srv_pool): PUT_SHAPE, PREPARE, MATCH, DISTANCE, QUERY, BATCH.
+ *       tables, and the requests answered inline (HELLO/PING/STATS/HAS/DROP/CANCEL: the
+ *       opcodes without SM_OPF_QUEUED in sm_proto.h's table);
+ *     - N worker threads (sm_srv_pool): the queued ones (PUT_SHAPE, PREPARE, MATCH,
+ *       DISTANCE, QUERY, BATCH).
  *       A worker never touches an sm_conn: it reads its job (an owned copy of the request)
  *       and posts encoded response frames back through the pool's done list + eventfd.
  *       BATCH items and QUERY candidates run as units on several workers at once
@@ -84,6 +86,7 @@ typedef struct sm_server {
   int n_budget_blocked;
 } sm_server;
 
+/* sm_srv.c (not main.c, so no module depends on the program's entry point). */
 /* Set by the SIGTERM/SIGINT handler; the loop polls it. */
 extern volatile sig_atomic_t sm_srv_signal_flag;
 

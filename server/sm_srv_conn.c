@@ -24,16 +24,6 @@
 #define SHED_RETRY_MS 1000u
 #define READ_SLICE (64u << 10) /* bytes read from one connection per event: fairness */
 
-sm_wbuf *sm_wbuf_new(size_t len) {
-  sm_wbuf *w = malloc(sizeof *w + len);
-  if (!w) return NULL;
-  w->next = NULL;
-  w->len = len;
-  w->off = 0;
-  w->cap = len;
-  return w;
-}
-
 /* ------------------------------------------------------------------ budget */
 
 static void charge(sm_server *s, size_t *acct, size_t n) {
@@ -147,27 +137,6 @@ static void wq_drop_unsent(sm_server *s, sm_conn *c) {
     free(n);
   }
   c->wq_tail = h;
-}
-
-size_t sm_error_payload(uint8_t *out, uint32_t retry, uint32_t detail, const char *msg) {
-  size_t ml = msg ? strlen(msg) : 0;
-  if (ml > SM_PROTO_MAX_MSG) ml = SM_PROTO_MAX_MSG;
-  uint32_t v[3] = {retry, detail, (uint32_t)ml};
-  for (int i = 0; i < 3; i++)
-    for (int b = 0; b < 4; b++) out[4 * i + b] = (uint8_t)(v[i] >> (8 * b));
-  if (ml) memcpy(out + 12, msg, ml);
-  return 12 + ml;
-}
-
-sm_wbuf *sm_error_frame(uint8_t version, uint8_t opcode, uint32_t rid, uint16_t status,
-                        uint32_t retry, uint32_t detail, const char *msg) {
-  sm_wbuf *w = sm_wbuf_new(SM_PROTO_HEADER_LEN + 12 + SM_PROTO_MAX_MSG);
-  if (!w) return NULL;
-  size_t pl = sm_error_payload(w->data + SM_PROTO_HEADER_LEN, retry, detail, msg);
-  sm_proto_header h = {version, opcode, SM_PROTO_F_RESPONSE, rid, status, (uint32_t)pl};
-  sm_proto_write_header(w->data, &h);
-  w->len = SM_PROTO_HEADER_LEN + pl;
-  return w;
 }
 
 /* ------------------------------------------------------------------ lifecycle */
@@ -530,6 +499,16 @@ static int on_frame(sm_server *s, sm_conn *c, const sm_proto_frame *f, size_t fr
     sm_conn_send_error(s, c, op, rid, SM_ST_SHUTTING_DOWN, 1000, 0, "server is shutting down");
     return 0;
   }
+  unsigned kind = sm_proto_op_flags(op); /* the opcode table: queued or answered here */
+  if (kind & SM_OPF_QUEUED) {
+    int steal = can_steal && frame_len >= STEAL_MIN && c->n_inflight < s->cfg.max_inflight;
+    submit_job(s, c, f, frame_len, steal);
+    return steal && c->rbuf == NULL;
+  }
+  if (kind & SM_OPF_SERVER) { /* a GOAWAY answer would read as "closing" while the connection lived on */
+    sm_conn_fatal(s, c, SM_ST_PROTOCOL_ERROR, rid, 0, 0, "GOAWAY is server to client only");
+    return 0;
+  }
   sm_proto_header h = {c->version, op, SM_PROTO_F_RESPONSE, rid, 0, 0};
   int rc;
   switch (op) {
@@ -583,20 +562,7 @@ static int on_frame(sm_server *s, sm_conn *c, const sm_proto_frame *f, size_t fr
     }
     return 0;
   }
-  case SM_OP_PUT_SHAPE:
-  case SM_OP_PREPARE:
-  case SM_OP_MATCH:
-  case SM_OP_DISTANCE:
-  case SM_OP_QUERY:
-  case SM_OP_BATCH: {
-    int steal = can_steal && frame_len >= STEAL_MIN && c->n_inflight < s->cfg.max_inflight;
-    submit_job(s, c, f, frame_len, steal);
-    return steal && c->rbuf == NULL;
-  }
-  case SM_OP_GOAWAY: /* a GOAWAY answer would read as "closing" while the connection lived on */
-    sm_conn_fatal(s, c, SM_ST_PROTOCOL_ERROR, rid, 0, 0, "GOAWAY is server to client only");
-    return 0;
-  default:
+  default: /* every immediate request of the opcode table has its case above */
     sm_conn_send_error(s, c, op, rid, SM_ST_UNKNOWN_OPCODE, 0, 0, "unknown opcode");
     return 0;
   }

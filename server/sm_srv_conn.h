@@ -1,10 +1,9 @@
 /* sm_srv_conn: one client connection and its frame handling (PROTOCOL.md sections 2-5),
- * on the loop thread; and the job that carries a request to a worker (sm_srv_exec).
+ * on the loop thread. The job it hands to a worker is sm_srv_job.h's.
  *
  * Contract
- *   - Everything here runs on the loop thread, except that a worker owns a job between
- *     sm_pool_submit and its final sm_srv_out (it reads the job's own fields and writes
- *     nothing but job->deadline_hit; conn is opaque to it).
+ *   - Everything here runs on the loop thread (a worker owns a job between sm_pool_submit
+ *     and its final sm_srv_out: sm_srv_job.h).
  *   - Read side: c->rbuf holds the bytes of the current (partial) frames. The header is
  *     validated from its 24 bytes (sm_proto_parse_header against c->limit: 4096 before
  *     HELLO, then max_payload) before the buffer grows for the payload, so an oversize
@@ -39,13 +38,12 @@
 #ifndef SM_SRV_CONN_H
 #define SM_SRV_CONN_H
 
-#include <stdatomic.h>
 #include <stddef.h>
 #include <stdint.h>
 
 #include "sm_proto.h"
 #include "sm_srv.h"
-#include "sm_srv_pool.h"
+#include "sm_srv_job.h"
 
 #define SM_CONN_WQ_HIGH (256u << 10)  /* unsent answers that pause reading */
 #define SM_CONN_WQ_TIGHT (16u << 10)  /* the same once half the budget is used */
@@ -53,19 +51,8 @@
 #define SM_CONN_IDLE_EVICT_MS 10000u
 #define SM_CONN_HELLO_TIMEOUT_MS 10000u
 
-typedef struct sm_wbuf {
-  struct sm_wbuf *next;
-  size_t len, off;
-  size_t cap; /* bytes allocated for data (>= len) */
-  uint8_t data[];
-} sm_wbuf;
-
-sm_wbuf *sm_wbuf_new(size_t len);
-
 enum { SM_H_LISTEN = 1, SM_H_METRICS_LISTEN, SM_H_EVENTFD, SM_H_CONN, SM_H_HTTP };
 enum { SM_CONN_OPEN = 0, SM_CONN_FLUSH_CLOSE, SM_CONN_LINGER, SM_CONN_DEAD };
-
-typedef struct sm_job sm_job;
 
 typedef struct sm_conn {
   int kind; /* SM_H_CONN or SM_H_HTTP: first member, the epoll data points here */
@@ -93,33 +80,6 @@ typedef struct sm_conn {
   uint32_t n_inflight;
   struct sm_conn *prev, *next;
 } sm_conn;
-
-struct sm_job {
-  sm_pool_job base; /* first member */
-  sm_server *srv;
-  sm_conn *conn;    /* loop thread only */
-  uint32_t rid;
-  uint8_t opcode;
-  uint8_t version;  /* the connection's negotiated version: response layouts and headers */
-  uint32_t max_response;
-  uint8_t *buf;     /* owned: holds the frame or the body */
-  const uint8_t *body;
-  uint32_t body_len;
-  _Atomic int cancel; /* 1 CANCEL or disconnect, 2 drain budget spent */
-  int deadline_hit;   /* worker only */
-  struct sm_job *parent; /* a unit of a fanned-out request (sm_srv_exec): the request whose
-                            cancel flag also applies; NULL for a request */
-  uint64_t recv_ns, deadline_ns;
-  size_t charged;     /* loop thread: bytes of buf charged to the budget */
-};
-
-/* A worker's result frames for one job; final = the job is done. */
-typedef struct sm_srv_out {
-  sm_pool_msg base;
-  sm_job *job;
-  sm_wbuf *frames;
-  int final;
-} sm_srv_out;
 
 sm_conn *sm_conn_new(sm_server *s, int fd, int kind, const char *peer);
 /* Reads what is available and handles complete frames. */
@@ -155,11 +115,5 @@ void sm_conn_cancel_all(sm_conn *c, int v);
 /* Queues an error frame (request-level status). */
 void sm_conn_send_error(sm_server *s, sm_conn *c, uint8_t opcode, uint32_t rid,
                         uint16_t status, uint32_t retry, uint32_t detail, const char *msg);
-
-/* Error payload (PROTOCOL.md 4) into out (12 + msg bytes, msg truncated to 1024). */
-size_t sm_error_payload(uint8_t *out, uint32_t retry, uint32_t detail, const char *msg);
-/* A complete error frame with header version `version` (the connection's). */
-sm_wbuf *sm_error_frame(uint8_t version, uint8_t opcode, uint32_t rid, uint16_t status,
-                        uint32_t retry, uint32_t detail, const char *msg);
 
 #endif

@@ -10,7 +10,7 @@
 #include "sm_distance.h"
 #include "sm_proto.h"
 #include "sm_shell.h"
-#include "sm_srv_conn.h"
+#include "sm_srv_job.h"
 #include "sm_srv_log.h"
 #include "sm_srv_metrics.h"
 #include "sm_srv_store.h"

@@ -11,7 +11,7 @@
 #ifndef SM_SRV_EXEC_H
 #define SM_SRV_EXEC_H
 
-#include "sm_srv_pool.h"
+#include "sm_srv_pool.h" /* sm_pool_job; the job itself is sm_srv_job.h's */
 
 void sm_exec_run(sm_pool_job *j);
 

@@ -208,7 +208,7 @@ static ptrdiff_t rt_batch_req(const uint8_t *p, size_t n, uint8_t arg, const sm_
   uint32_t k = 0;
   sm_proto_batch_item it;
   while (sm_proto_batch_next(&m, &pos, &it)) {
-    SM_FUZZ_CHECK(sm_proto_batch_op_allowed(it.opcode));
+    SM_FUZZ_CHECK(sm_proto_op_flags(it.opcode) & SM_OPF_BATCHABLE);
     SM_FUZZ_CHECK(it.payload >= p && it.payload + it.len <= p + n);
     decode_item(&it);
     k++;
