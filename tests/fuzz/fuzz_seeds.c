@@ -285,6 +285,55 @@ static int basis_seeds(void) {
   return rc;
 }
 
+/* ---- the connection state machine (fuzz_srv_conn): scripts of peer and loop events ---- */
+
+static size_t cmd(uint8_t *b, size_t n, uint8_t op, const uint8_t *d, size_t len) {
+  b[n] = op;
+  b[n + 1] = (uint8_t)len;
+  b[n + 2] = (uint8_t)(len >> 8);
+  if (len) memcpy(b + n + 3, d, len);
+  return n + 3 + len;
+}
+
+/* A frame for command 1: opcode, flags, request id, version, cut, then the body. */
+static size_t frame_cmd(uint8_t *b, size_t n, uint8_t op, uint8_t flags, uint8_t rid,
+                        const uint8_t *body, size_t len) {
+  uint8_t f[128] = {op, flags, rid, 2, 7};
+  if (len) memcpy(f + 5, body, len);
+  return cmd(b, n, 1, f, 5 + len);
+}
+
+static int conn_seeds(void) {
+  static uint8_t b[1 << 17];
+  uint8_t ping[8] = {1, 2, 3, 4, 5, 6, 7, 8}, id[32] = {1}, two = 2, one = 1, z = 0;
+  uint8_t cancel[4] = {3, 0, 0, 0}, work[40] = {1, 9, 9};
+  size_t n = 0;
+  b[n++] = 0x3E; /* 2 MiB budget, 64 in flight, queue 64, no token, 1 MiB payloads */
+  n = cmd(b, n, 2, &two, 1); /* HELLO, versions 1..2 */
+  n = frame_cmd(b, n, SM_OP_PING, 0, 2, ping, sizeof ping);
+  n = frame_cmd(b, n, SM_OP_HAS_SHAPE, SM_PROTO_F_PAYLOAD_CRC, 4, id, sizeof id);
+  n = frame_cmd(b, n, SM_OP_STATS, 0, 5, NULL, 0);
+  n = frame_cmd(b, n, SM_OP_MATCH, 0, 3, work, sizeof work);
+  n = frame_cmd(b, n, SM_OP_CANCEL, 0, 6, cancel, sizeof cancel);
+  n = frame_cmd(b, n, SM_OP_QUERY, 0, 7, work, 8);
+  n = cmd(b, n, 3, &two, 1); /* run jobs */
+  n = cmd(b, n, 4, &one, 1); /* read answers */
+  n = cmd(b, n, 5, &one, 1); /* tick */
+  n = frame_cmd(b, n, SM_OP_DROP_SHAPE, 0, 8, id, sizeof id);
+  n = cmd(b, n, 6, &z, 1);   /* drain */
+  n = cmd(b, n, 4, &z, 1);
+  int rc = write_seed("srv_conn", "session", NULL, 0, b, n);
+  /* Every request the codec seeds hold, as one raw upload, with small buffers. */
+  n = 0;
+  b[n++] = 0x00; /* 16 KiB budget, 1 in flight, queue 0 */
+  size_t m = g_stream_len < 60000 ? g_stream_len : 60000;
+  n = cmd(b, n, 0, g_stream, m);
+  n = cmd(b, n, 7, NULL, 0);
+  n = cmd(b, n, 4, &one, 1);
+  rc |= write_seed("srv_conn", "raw_stream", NULL, 0, b, n);
+  return rc;
+}
+
 int main(int argc, char **argv) {
   if (argc != 2) {
     fprintf(stderr, "usage: %s OUTDIR\n", argv[0]);
@@ -299,6 +348,7 @@ int main(int argc, char **argv) {
   int rc = proto_requests(frame, sizeof frame);
   rc |= proto_responses(frame, sizeof frame);
   rc |= frame_seeds();
+  rc |= conn_seeds();
   rc |= mesh_seeds();
   rc |= basis_seeds();
   if (rc) fprintf(stderr, "%s: could not write every seed\n", argv[0]);

@@ -18,7 +18,7 @@ set -uo pipefail
 
 here="$(cd "$(dirname "$0")" && pwd)"
 root="$(cd "$here/../.." && pwd)"
-all=(proto_frame proto_decode draco_mesh meshio basis_io)
+all=(proto_frame proto_decode draco_mesh meshio basis_io srv_conn)
 secs="${1:-}"
 if ! [[ "$secs" =~ ^[0-9]+$ ]] || [ "$secs" -lt 1 ]; then
   echo "usage: $0 SECONDS [HARNESS...]   (harnesses: ${all[*]})" >&2
@@ -46,7 +46,7 @@ fi
 max_len() {
   case "$1" in
     draco_mesh) echo 65536 ;;
-    proto_frame|meshio) echo 16384 ;;
+    proto_frame|meshio|srv_conn) echo 16384 ;;
     *) echo 4096 ;;
   esac
 }
