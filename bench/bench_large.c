@@ -13,10 +13,15 @@
  *   (wait4's ru_maxrss), accuracy. --direct adds the full-resolution path on the koala
  *   permuted pair once (134 s); the dragon's direct path is not run (see docs/RESULTS.md).
  *   --small: the four 5k-15k pairs of bench_match, multires forced against the direct path
- *   (mean geodesic error), at the default coarse level and at --small-coarse N vertices.
+ *   (mean geodesic error), at each coarse level of --small-levels (default 4500,5000,5500):
+ *   one level's outcome depends on how that decimation happened to fall (the coarse match
+ *   is the whole pipeline on a remeshed pair, which moves by tens of percent between
+ *   remeshings), so the comparison is the mean over levels and pairs. Ends with a table:
+ *   per pair, direct and multires errors and the change, and the mean change.
+ *   --pair NAME restricts --small to one pair, --no-small-direct skips its direct runs.
  *
- * usage: bench_large [--reps N] [--direct] [--small] [--small-coarse N] [--only koala|dragon]
- *                    [--coarse N]
+ * usage: bench_large [--reps N] [--direct] [--small] [--small-levels N,N,..] [--pair NAME]
+ *                    [--no-small-direct] [--only koala|dragon|small] [--coarse N]
  */
 #define _GNU_SOURCE
 #include <stdint.h>
@@ -264,8 +269,11 @@ static void print_header(void) {
          "peak_MB", "exact", "geo_err", "conf", "runs");
 }
 
-/* Runs a case reps times; prints the run with the median total time. */
-static void bench(const spec *s, int reps) {
+/* Runs a case reps times; prints the run with the median total time and returns it
+ * (ok = 0 when a run failed). */
+static outcome bench(const spec *s, int reps) {
+  outcome med;
+  memset(&med, 0, sizeof med);
   outcome *o = calloc((size_t)reps, sizeof *o);
   int n = 0;
   for (int r = 0; r < reps; r++) {
@@ -274,7 +282,7 @@ static void bench(const spec *s, int reps) {
       printf("%-16s %-8s FAILED: %s\n", s->name, s->multires ? "multires" : "direct", o[n].msg);
       fflush(stdout);
       free(o);
-      return;
+      return med;
     }
     n++;
   }
@@ -288,23 +296,82 @@ static void bench(const spec *s, int reps) {
          m->geo_mean, m->confidence, n);
   if (m->skipped) printf("%-16s (decimater left out %d non-manifold faces of the coarse proxies)\n", "", m->skipped);
   fflush(stdout);
+  med = *m;
   free(o);
+  return med;
+}
+
+#define MAX_LEVELS 8
+
+/* The --small comparison: per pair, the direct error, the multires error per level, their
+ * mean and its change against the direct path. */
+static void small_table(const char *pair, int with_direct, const int32_t *levels, int nl) {
+  double dsum = 0, msum = 0;
+  int np = 0;
+  double res[N_PAIRS][1 + MAX_LEVELS];
+  int used[N_PAIRS] = {0};
+  for (int i = 0; i < N_PAIRS; i++) {
+    if (pair && strcmp(pair, PAIRS[i].name)) continue;
+    outcome d = {0};
+    if (with_direct) d = bench(&(spec){PAIRS[i].name, NULL, K_PAIR, 0, 0, &PAIRS[i]}, 1);
+    res[i][0] = d.ok ? d.geo_mean : -1;
+    int ok = 1;
+    for (int l = 0; l < nl; l++) {
+      char name[64];
+      snprintf(name, sizeof name, "%s@%d", PAIRS[i].name, levels[l]);
+      outcome m = bench(&(spec){name, NULL, K_PAIR, 1, levels[l], &PAIRS[i]}, 1);
+      res[i][1 + l] = m.ok ? m.geo_mean : -1;
+      ok &= m.ok && m.geo_mean >= 0;
+    }
+    used[i] = ok;
+  }
+  printf("\n# multires forced on the 5k-15k pairs: mean geodesic error, direct vs each coarse level\n");
+  printf("%-8s %9s", "pair", "direct");
+  for (int l = 0; l < nl; l++) printf("   @%-5d", levels[l]);
+  printf(" %9s %8s\n", "mr_mean", "change");
+  for (int i = 0; i < N_PAIRS; i++) {
+    if (!used[i]) continue;
+    double mean = 0;
+    for (int l = 0; l < nl; l++) mean += res[i][1 + l] / nl;
+    printf("%-8s %9.5f", PAIRS[i].name, res[i][0]);
+    for (int l = 0; l < nl; l++) printf(" %8.5f", res[i][1 + l]);
+    if (res[i][0] > 0) {
+      printf(" %9.5f %+7.1f%%\n", mean, 100 * (mean / res[i][0] - 1));
+      dsum += res[i][0];
+      msum += mean;
+      np++;
+    } else {
+      printf(" %9.5f %8s\n", mean, "-");
+    }
+  }
+  if (np) printf("%-8s %9.5f %*s %9.5f %+7.1f%%  (sums over %d pairs)\n", "all", dsum, 9 * nl, "",
+                 msum, 100 * (msum / dsum - 1), np);
+  fflush(stdout);
 }
 
 int main(int argc, char **argv) {
-  int reps = 3, direct = 0, small = 0;
-  int32_t coarse = 0, small_coarse = 2000;
+  int reps = 3, direct = 0, small = 0, small_direct = 1;
+  const char *pair = NULL;
+  int32_t coarse = 0, levels[MAX_LEVELS] = {4500, 5000, 5500};
+  int nl = 3;
   const char *only = NULL;
   for (int i = 1; i < argc; i++) {
     if (!strcmp(argv[i], "--reps") && i + 1 < argc) reps = atoi(argv[++i]);
     else if (!strcmp(argv[i], "--direct")) direct = 1;
     else if (!strcmp(argv[i], "--small")) small = 1;
-    else if (!strcmp(argv[i], "--small-coarse") && i + 1 < argc) small_coarse = atoi(argv[++i]);
+    else if (!strcmp(argv[i], "--small-levels") && i + 1 < argc) {
+      nl = 0;
+      for (char *t = strtok(argv[++i], ","); t && nl < MAX_LEVELS; t = strtok(NULL, ","))
+        levels[nl++] = atoi(t);
+    }
     else if (!strcmp(argv[i], "--only") && i + 1 < argc) only = argv[++i];
+    else if (!strcmp(argv[i], "--pair") && i + 1 < argc) pair = argv[++i];
+    else if (!strcmp(argv[i], "--no-small-direct")) small_direct = 0;
     else if (!strcmp(argv[i], "--coarse") && i + 1 < argc) coarse = atoi(argv[++i]);
     else {
-      fprintf(stderr, "usage: bench_large [--reps N] [--direct] [--small] [--small-coarse N] "
-                      "[--only koala|dragon|small] [--coarse N]\n");
+      fprintf(stderr, "usage: bench_large [--reps N] [--direct] [--small] [--small-levels N,N,..] "
+                      "[--pair NAME] [--no-small-direct] [--only koala|dragon|small] "
+                      "[--coarse N]\n");
       return 2;
     }
   }
@@ -333,15 +400,12 @@ int main(int argc, char **argv) {
     bench(&(spec){"dragon-decnoise", dragon, K_DECNOISE, 1, coarse, NULL}, reps);
   }
   if (small || (only && !strcmp(only, "small"))) {
-    for (int i = 0; i < N_PAIRS; i++) {
-      bench(&(spec){PAIRS[i].name, NULL, K_PAIR, 0, 0, &PAIRS[i]}, 1);
-      bench(&(spec){PAIRS[i].name, NULL, K_PAIR, 1, 0, &PAIRS[i]}, 1);
-      if (small_coarse > 0) {
-        char name[64];
-        snprintf(name, sizeof name, "%s@%d", PAIRS[i].name, small_coarse);
-        bench(&(spec){name, NULL, K_PAIR, 1, small_coarse, &PAIRS[i]}, 1);
+    for (int l = 0; l < nl; l++)
+      if (levels[l] < 200) {
+        fprintf(stderr, "bench_large: coarse level %d below 200\n", levels[l]);
+        return 2;
       }
-    }
+    small_table(pair, small_direct, levels, nl);
   }
   return 0;
 }

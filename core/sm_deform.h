@@ -53,6 +53,15 @@ int sm_mesh_decimate(const sm_mesh *in, int32_t target_nv, sm_mesh **out, sm_err
 int sm_mesh_decimate_lenient(const sm_mesh *in, int32_t target_nv, sm_mesh **out,
                              int32_t *skipped, sm_error *err);
 
+/* As sm_mesh_decimate_lenient, with a veto (OpenMesh's ModAspectRatio, binary) on
+ * collapses that leave a face around them with an aspect ratio (longest edge over its
+ * height; 1.15 for an equilateral face) above max_aspect, unless they improve the worst
+ * face there: the coarse proxy of sm_multires.h, whose bases suffer from the needle
+ * triangles of the quadric order alone. max_aspect >= 1.5, else SM_EINVAL. The veto can
+ * stop the decimation above target_nv. */
+int sm_mesh_decimate_proxy(const sm_mesh *in, int32_t target_nv, double max_aspect,
+                           sm_mesh **out, int32_t *skipped, sm_error *err);
+
 /* Principal axis (unit vector, sign fixed so its largest component is positive) of the
  * vertices; used by stretch and exposed for tests. */
 int sm_principal_axis(const sm_mesh *m, double axis[3], sm_error *err);

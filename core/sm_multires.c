@@ -2,6 +2,7 @@
 
 #include <cblas.h>
 #include <float.h>
+#include <lapacke.h>
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
@@ -19,6 +20,8 @@ void sm_multires_opts_default(sm_multires_opts *o) {
   o->threshold = SM_MULTIRES_THRESHOLD;
   o->coarse_nv = SM_MULTIRES_COARSE_NV;
   o->ring = SM_MULTIRES_RING;
+  o->fine_iters = SM_MULTIRES_FINE_ITERS;
+  o->max_aspect = SM_MULTIRES_MAX_ASPECT;
 }
 
 int sm_multires_wanted(const sm_multires_opts *o, int32_t nv_x, int32_t nv_y) {
@@ -29,10 +32,12 @@ int sm_multires_wanted(const sm_multires_opts *o, int32_t nv_x, int32_t nv_y) {
 
 static int check_mopts(const sm_multires_opts *o, sm_error *err) {
   if (o->mode < SM_MULTIRES_AUTO || o->mode > SM_MULTIRES_OFF || o->coarse_nv < 200 ||
-      o->ring < 1 || o->threshold < 0)
+      o->ring < 1 || o->threshold < 0 || o->fine_iters < 0 || !(o->max_aspect >= 1.5) ||
+      !isfinite(o->max_aspect))
     return sm_error_set(err, SM_EINVAL, "multires: mode %d, coarse_nv %d (>= 200), ring %d "
-                        "(>= 1), threshold %d invalid", o->mode, o->coarse_nv, o->ring,
-                        o->threshold);
+                        "(>= 1), threshold %d (>= 0), fine_iters %d (>= 0), max_aspect %g "
+                        "(>= 1.5) invalid", o->mode, o->coarse_nv, o->ring, o->threshold,
+                        o->fine_iters, o->max_aspect);
   return SM_OK;
 }
 
@@ -356,7 +361,8 @@ int sm_multires_shape_prepare(const sm_mesh *input, const sm_shape_opts *so,
    * bit-identical for two files of one surface (normalization sums in file order). */
   if (!rc) rc = canonical_copy(s->mesh, &canon, &s->dropped_vertices, err);
   sm_mesh *raw = NULL;
-  if (!rc) rc = sm_mesh_decimate_lenient(canon, mo->coarse_nv, &raw, &s->skipped_faces, err);
+  if (!rc) rc = sm_mesh_decimate_proxy(canon, mo->coarse_nv, mo->max_aspect, &raw,
+                                              &s->skipped_faces, err);
   if (!rc) rc = proxy_fix(raw, &dec, err);
   sm_mesh_destroy(raw);
   sm_mesh_destroy(canon);
@@ -552,6 +558,83 @@ static int extract(const extract_side *Q, const extract_side *C, const int32_t *
   return rc;
 }
 
+/* ---- fine-level refinement --------------------------------------------------------------- */
+
+/* E (n x k row-major, prolonged functions) := E L^-T with L L^T = E^T diag(m) E: the
+ * prolonged functions made orthonormal in the fine mass. */
+static int fine_whiten(double *E, int32_t n, int k, const double *m, sm_error *err) {
+  double *S = malloc((size_t)n * k * sizeof *S), *G = malloc((size_t)k * k * sizeof *G);
+  if (!S || !G) {
+    free(S);
+    free(G);
+    return sm_error_set(err, SM_ENOMEM, "multires: out of memory (%d x %d)", n, k);
+  }
+  for (int32_t i = 0; i < n; i++) {
+    double r = sqrt(m[i]);
+    for (int j = 0; j < k; j++) S[(size_t)i * k + j] = r * E[(size_t)i * k + j];
+  }
+  cblas_dsyrk(CblasRowMajor, CblasLower, CblasTrans, k, n, 1.0, S, k, 0.0, G, k);
+  free(S);
+  int rc = SM_OK;
+  if (LAPACKE_dpotrf(LAPACK_ROW_MAJOR, 'L', k, G, k))
+    rc = sm_error_set(err, SM_ENUMERIC, "multires: prolonged basis Gram not positive definite");
+  else
+    cblas_dtrsm(CblasRowMajor, CblasRight, CblasLower, CblasTrans, CblasNonUnit, n, k, 1.0, G,
+                k, E, k);
+  free(G);
+  return rc;
+}
+
+/* Ey (ny x k) = Uy Cw^T with Cw = Ux^T diag(m) Uy[T]: the M-weighted least-squares
+ * functional map of T in the fine orthonormal coordinates, applied to Y. */
+static int fine_refit(const double *Ux, int32_t nx, const double *m, const double *Uy,
+                      int32_t ny, int k, const int32_t *T, double *Ey, sm_error *err) {
+  double *YT = malloc((size_t)nx * k * sizeof *YT), *Cw = malloc((size_t)k * k * sizeof *Cw);
+  if (!YT || !Cw) {
+    free(YT);
+    free(Cw);
+    return sm_error_set(err, SM_ENOMEM, "multires: out of memory (%d x %d)", nx, k);
+  }
+  for (int32_t i = 0; i < nx; i++)
+    for (int j = 0; j < k; j++) YT[(size_t)i * k + j] = m[i] * Uy[(size_t)T[i] * k + j];
+  cblas_dgemm(CblasRowMajor, CblasTrans, CblasNoTrans, k, k, nx, 1.0, Ux, k, YT, k, 0.0, Cw, k);
+  cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasTrans, ny, k, k, 1.0, Uy, k, Cw, k, 0.0, Ey, k);
+  free(YT);
+  free(Cw);
+  return SM_OK;
+}
+
+/* The fine refits: Exf := the prolonged X functions, orthonormal in X's fine masses; then
+ * fine_iters times Eyf := the C-aligned Y embedding of the least-squares C of T, T := the
+ * extraction. Eyf ends as the embedding of the last C (for the adjoint Y -> X). */
+static int fine_refine(const sm_multires_shape *x, const sm_multires_shape *y,
+                       const sm_basis *bx, const sm_basis *by, int k, const int32_t *Tc,
+                       const sm_multires_opts *mo, const sm_match_opts *o, double *Exf,
+                       double *Eyf, int32_t *T, sm_error *err) {
+  int32_t nx = x->mesh->nv, ny = y->mesh->nv;
+  int32_t ncx = x->coarse->mesh->nv, ncy = y->coarse->mesh->nv;
+  double *Exc = malloc((size_t)ncx * k * sizeof *Exc), *Uyc = malloc((size_t)ncy * k * sizeof *Uyc);
+  double *Uy = malloc((size_t)ny * k * sizeof *Uy);
+  int rc = (!Exc || !Uyc || !Uy) ? sm_error_set(err, SM_ENOMEM, "multires: out of memory") : SM_OK;
+  if (!rc) rc = sm_fmap_embed_x(bx, k, Exc, k, err);
+  if (!rc) rc = sm_fmap_embed_x(by, k, Uyc, k, err);
+  if (!rc) {
+    sm_multires_prolong(x->tri, x->bary, nx, Exc, k, k, Exf, k);
+    sm_multires_prolong(y->tri, y->bary, ny, Uyc, k, k, Uy, k);
+    rc = fine_whiten(Exf, nx, k, x->mass, err);
+  }
+  if (!rc) rc = fine_whiten(Uy, ny, k, y->mass, err);
+  free(Exc);
+  free(Uyc);
+  extract_side sx = {Exf, nx, x->owner, x->coarse->mesh}, sy = {Eyf, ny, y->owner, y->coarse->mesh};
+  for (int it = 0; !rc && it < mo->fine_iters; it++) {
+    rc = fine_refit(Exf, nx, x->mass, Uy, ny, k, T, Eyf, err);
+    if (!rc) rc = extract(&sx, &sy, Tc, k, mo->ring, o->cancel, o->cancel_ud, T, err);
+  }
+  free(Uy);
+  return rc;
+}
+
 /* ---- matching --------------------------------------------------------------------------- */
 
 void sm_multires_result_free(sm_multires_result *r) {
@@ -650,6 +733,8 @@ int sm_multires_match(const sm_multires_shape *x, const sm_multires_shape *y,
   free(Eyc);
   extract_side sx = {Exf, nx, x->owner, cx->mesh}, sy = {Eyf, ny, y->owner, cy->mesh};
   if (!rc) rc = extract(&sx, &sy, res->coarse.T, k, mo->ring, o->cancel, o->cancel_ud, res->T, err);
+  if (!rc && mo->fine_iters > 0)
+    rc = fine_refine(x, y, bx, by, k, res->coarse.T, mo, o, Exf, Eyf, res->T, err);
   if (!rc)
     rc = extract(&sy, &sx, res->coarse.T_yx, k, mo->ring, o->cancel, o->cancel_ud, res->T_yx, err);
   free(Exf);

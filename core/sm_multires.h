@@ -15,8 +15,18 @@
  *     within `ring` edges of the coarse image of its own coarse vertex. The coarse map
  *     already fixed the basin; the local candidate set makes the extraction O(n) instead
  *     of the O(nx ny k) of an exhaustive search (50 s on 100k x 100k vertices here).
- *     Y -> X the same way from the coarse T_yx. Confidence, orientation and Dirichlet
- *     energy are computed on the fine maps.
+ *     Then fine_iters refits at full resolution (the last step of a ZoomOut run on the
+ *     prolonged basis): the prolonged functions are made orthonormal in the fine masses,
+ *     C is refitted to the fine map by M-weighted least squares and the point map
+ *     extracted again among the same candidates; this fits C to what the prolonged
+ *     functions are on the fine vertices rather than on the coarse ones.
+ *     Y -> X: the adjoint assignment of the final C (nearest X vertex of each Y vertex,
+ *     candidates from the coarse T_yx). Confidence, orientation and Dirichlet energy are
+ *     computed on the fine maps.
+ *   Decimation quality: the decimater's collapses are vetoed when they leave needle
+ *     triangles (aspect ratio above max_aspect). Measured (bench_large --small, lion ->
+ *     cat, coarse levels 4,500 / 5,000 / 5,500): without the veto the coarse match lost
+ *     the map on some levels (mean error 0.063 against 0.036 direct), with it 0.039.
  *   The coarse level does not depend on the input's vertex numbering: the cleaned mesh is
  *   put in a canonical order (vertices by coordinates, faces by their vertices) before
  *   decimation, so two files of the same surface in different vertex orders get the same
@@ -56,12 +66,16 @@ enum sm_multires_mode { SM_MULTIRES_AUTO = 0, SM_MULTIRES_ON = 1, SM_MULTIRES_OF
 #define SM_MULTIRES_THRESHOLD 20000 /* auto: multires when either shape has more vertices */
 #define SM_MULTIRES_COARSE_NV 5000  /* vertices of the coarse level */
 #define SM_MULTIRES_RING 2          /* candidate radius of the fine extraction, coarse edges */
+#define SM_MULTIRES_FINE_ITERS 2    /* fine-level refits of the functional map */
+#define SM_MULTIRES_MAX_ASPECT 10.0 /* aspect-ratio bound of the decimation (sm_deform.h) */
 
 typedef struct sm_multires_opts {
   int mode;          /* enum sm_multires_mode (default AUTO) */
   int32_t threshold; /* AUTO: multires when max(nv) > threshold */
   int32_t coarse_nv; /* decimation target (>= 200) */
   int ring;          /* candidate radius (>= 1) */
+  int fine_iters;    /* fine-level refits after the first extraction (>= 0) */
+  double max_aspect; /* decimation's aspect-ratio bound (>= 1.5) */
 } sm_multires_opts;
 
 typedef struct sm_multires_shape {

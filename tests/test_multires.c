@@ -10,6 +10,7 @@
  *   - data (skipped without ../shared/data, and under SM_TEST_SYNTHETIC_ONLY as test_match):
  *     homerA against its permuted copy forced through the path, >= 99% exact.
  */
+#include <math.h>
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
@@ -217,13 +218,68 @@ static void test_options(void) {
   sm_multires_opts_default(&o);
   o.ring = 0;
   CHECK(sm_multires_shape_prepare(s, &so, &o, &x, &err) == SM_EINVAL && !x);
+  sm_multires_opts_default(&o);
+  o.fine_iters = -1;
+  CHECK(sm_multires_shape_prepare(s, &so, &o, &x, &err) == SM_EINVAL && !x);
+  sm_multires_opts_default(&o);
+  o.max_aspect = 1.0;
+  CHECK(sm_multires_shape_prepare(s, &so, &o, &x, &err) == SM_EINVAL && !x);
+  sm_mesh *d = NULL;
+  CHECK(sm_mesh_decimate_proxy(s, 20, NAN, &d, NULL, &err) == SM_EINVAL && !d);
   sm_mesh_destroy(s);
+}
+
+/* Largest face aspect ratio (longest edge over its height). */
+static double max_aspect(const sm_mesh *m) {
+  double worst = 0;
+  for (int32_t f = 0; f < m->nf; f++) {
+    const double *p[3];
+    for (int c = 0; c < 3; c++) p[c] = m->V + 3 * (size_t)m->F[3 * (size_t)f + c];
+    double e[3][3], l2max = 0;
+    for (int c = 0; c < 3; c++) {
+      double l2 = 0;
+      for (int d = 0; d < 3; d++) {
+        e[c][d] = p[(c + 1) % 3][d] - p[c][d];
+        l2 += e[c][d] * e[c][d];
+      }
+      if (l2 > l2max) l2max = l2;
+    }
+    double cx = e[0][1] * e[2][2] - e[0][2] * e[2][1], cy = e[0][2] * e[2][0] - e[0][0] * e[2][2],
+           cz = e[0][0] * e[2][1] - e[0][1] * e[2][0];
+    double a = sqrt(cx * cx + cy * cy + cz * cz); /* twice the area = longest edge x height */
+    double r = a > 0 ? l2max / a : INFINITY;
+    if (r > worst) worst = r;
+  }
+  return worst;
+}
+
+/* The proxy decimation's veto: on an anisotropically stretched blob, where the quadric order
+ * alone leaves needles, the proxy's worst face stays near the bound. */
+static void test_proxy_aspect(void) {
+  sm_mesh *blob = NULL, *a = NULL, *b = NULL;
+  const double stretch[3] = {4, 1, 0.5};
+  sm_error err;
+  REQUIRE(sm_synth_blob(5, 0.2, 3, stretch, &blob, &err) == 0);
+  CHECK(sm_mesh_decimate_lenient(blob, 1500, &a, NULL, &err) == 0);
+  CHECK(sm_mesh_decimate_proxy(blob, 1500, 10.0, &b, NULL, &err) == 0);
+  if (a && b) {
+    double wa = max_aspect(a), wb = max_aspect(b);
+    fprintf(stderr, "proxy aspect: worst face %.1f unconstrained, %.1f with bound 10 (%d / %d vertices)\n",
+            wa, wb, a->nv, b->nv);
+    CHECK(wb < wa);
+    CHECK(wb <= 20.0);
+    CHECK(b->nv <= 1.2 * 1500);
+  }
+  sm_mesh_destroy(a);
+  sm_mesh_destroy(b);
+  sm_mesh_destroy(blob);
 }
 
 int main(int argc, char **argv) {
   test_options();
   test_prolongation();
   test_nonmanifold();
+  test_proxy_aspect();
   sm_mesh *blob = NULL;
   const double one[3] = {1, 1, 1};
   sm_error err;

@@ -7,8 +7,12 @@
  *   out instead and counts them: for a coarse proxy of a non-manifold scan). Collapses are ordered by the quadric error
  *   (ModQuadric, no error bound) and vetoed when they flip a face normal by more than
  *   60 degrees (ModNormalFlipping), which keeps the decimated surface free of fold-overs.
+ *   sm_mesh_decimate_proxy also vetoes collapses that would leave a face with an aspect
+ *   ratio above a bound (ModAspectRatio, binary): the quadric order alone leaves needle
+ *   triangles, which the coarse bases of sm_multires.h are computed on.
  *   After garbage collection the vertices are renumbered 0..n-1 in OpenMesh's order.
  */
+#include <cmath>
 #include <cstdint>
 #include <exception>
 #include <mutex>
@@ -17,6 +21,7 @@
 
 #include <OpenMesh/Core/Mesh/TriMesh_ArrayKernelT.hh>
 #include <OpenMesh/Tools/Decimater/DecimaterT.hh>
+#include <OpenMesh/Tools/Decimater/ModAspectRatioT.hh>
 #include <OpenMesh/Tools/Decimater/ModNormalFlippingT.hh>
 #include <OpenMesh/Tools/Decimater/ModQuadricT.hh>
 
@@ -79,8 +84,8 @@ int extract(OmTri &om, sm_mesh **out, sm_error *err) {
  * builds from re-enabling it under each other. */
 std::mutex g_omerr_lock;
 
-int decimate_impl(const sm_mesh *in, int32_t target_nv, int32_t *skipped, sm_mesh **out,
-                  sm_error *err) {
+int decimate_impl(const sm_mesh *in, int32_t target_nv, double max_aspect, int32_t *skipped,
+                  sm_mesh **out, sm_error *err) {
   OmTri om;
   int rc;
   if (skipped) {
@@ -100,6 +105,12 @@ int decimate_impl(const sm_mesh *in, int32_t target_nv, int32_t *skipped, sm_mes
   dec.add(quadric);
   dec.add(flipping);
   dec.module(flipping).set_max_normal_deviation(60.0);
+  OpenMesh::Decimater::ModAspectRatioT<OmTri>::Handle aspect;
+  if (max_aspect > 0) {
+    dec.add(aspect);
+    dec.module(aspect).set_aspect_ratio((float)max_aspect);
+    dec.module(aspect).set_binary(true);
+  }
   if (!dec.initialize())
     return sm_error_set(err, SM_EINVAL, "decimate: OpenMesh decimater failed to initialize");
   dec.decimate_to((size_t)target_nv);
@@ -108,14 +119,14 @@ int decimate_impl(const sm_mesh *in, int32_t target_nv, int32_t *skipped, sm_mes
 
 }  // namespace
 
-static int decimate_entry(const sm_mesh *in, int32_t target_nv, int32_t *skipped,
-                          sm_mesh **out, sm_error *err) {
+static int decimate_entry(const sm_mesh *in, int32_t target_nv, double max_aspect,
+                          int32_t *skipped, sm_mesh **out, sm_error *err) {
   if (!in || !out || target_nv < 4)
     return sm_error_set(err, SM_EINVAL, "decimate: target of %d vertices (need >= 4)", target_nv);
   *out = NULL;
   if (in->nv <= target_nv) return sm_mesh_copy(in, out, err);
   try {
-    int rc = decimate_impl(in, target_nv, skipped, out, err);
+    int rc = decimate_impl(in, target_nv, max_aspect, skipped, out, err);
     if (rc && *out) {
       sm_mesh_destroy(*out);
       *out = NULL;
@@ -130,13 +141,24 @@ static int decimate_entry(const sm_mesh *in, int32_t target_nv, int32_t *skipped
 
 extern "C" int sm_mesh_decimate(const sm_mesh *in, int32_t target_nv, sm_mesh **out,
                                 sm_error *err) {
-  return decimate_entry(in, target_nv, NULL, out, err);
+  return decimate_entry(in, target_nv, 0, NULL, out, err);
 }
 
 extern "C" int sm_mesh_decimate_lenient(const sm_mesh *in, int32_t target_nv, sm_mesh **out,
                                         int32_t *skipped, sm_error *err) {
   int32_t n = 0;
-  int rc = decimate_entry(in, target_nv, &n, out, err);
+  int rc = decimate_entry(in, target_nv, 0, &n, out, err);
+  if (skipped) *skipped = n;
+  return rc;
+}
+
+extern "C" int sm_mesh_decimate_proxy(const sm_mesh *in, int32_t target_nv, double max_aspect,
+                                      sm_mesh **out, int32_t *skipped, sm_error *err) {
+  if (!(max_aspect >= 1.5) || !std::isfinite(max_aspect))
+    return sm_error_set(err, SM_EINVAL, "decimate: aspect ratio bound %g (need >= 1.5)",
+                        max_aspect);
+  int32_t n = 0;
+  int rc = decimate_entry(in, target_nv, max_aspect, &n, out, err);
   if (skipped) *skipped = n;
   return rc;
 }
