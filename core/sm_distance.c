@@ -5,12 +5,14 @@
 #include <string.h>
 
 #define SM_DIST_TIMES 8
-#define SM_DIST_SPECTRUM 50
+#define SM_DIST_SPECTRUM 70 /* shipped K */
+#define SM_DIST_PAPER_SPECTRUM 50
 
 void sm_distance_opts_default(sm_distance_opts *o) {
   o->def = SM_DIST_SHIPPED;
   o->map_weight = SM_DIST_MAP_WEIGHT;
   o->spectrum_k = SM_DIST_SPECTRUM;
+  o->level_weight = SM_DIST_LEVEL_WEIGHT;
 }
 
 /* F (n x SM_DIST_TIMES, column-major): log HKS at the fixed times; centered (each column
@@ -102,17 +104,19 @@ static int first_positive(const sm_basis *b) {
   return i;
 }
 
-double sm_spectrum_ratio_distance(const sm_basis *a, const sm_basis *b, int K) {
+double sm_spectrum_ratio_distance(const sm_basis *a, const sm_basis *b, int K, double level) {
   int ia = first_positive(a), ib = first_positive(b);
   int n = a->k - ia < b->k - ib ? a->k - ia : b->k - ib;
   if (K <= 0 || K > n) K = n;
   if (K < 1) return 0.0;
-  double ss = 0;
+  double mean = 0, ss = 0;
+  for (int i = 0; i < K; i++) mean += log(a->evals[ia + i] / b->evals[ib + i]) / K;
+  /* two passes: the spread around the mean, then the level's share */
   for (int i = 0; i < K; i++) {
-    double d = log(a->evals[ia + i] / b->evals[ib + i]);
+    double d = log(a->evals[ia + i] / b->evals[ib + i]) - mean;
     ss += d * d;
   }
-  return sqrt(ss / K);
+  return sqrt(ss / K + level * mean * mean);
 }
 
 double sm_spectrum_distance(const sm_basis *a, const sm_basis *b) {
@@ -121,7 +125,7 @@ double sm_spectrum_distance(const sm_basis *a, const sm_basis *b) {
   while (ia < a->k && a->evals[ia] <= 1e-9 * top_a) ia++;
   while (ib < b->k && b->evals[ib] <= 1e-9 * top_b) ib++;
   int K = a->k - ia < b->k - ib ? a->k - ia : b->k - ib;
-  if (K > SM_DIST_SPECTRUM) K = SM_DIST_SPECTRUM;
+  if (K > SM_DIST_PAPER_SPECTRUM) K = SM_DIST_PAPER_SPECTRUM;
   if (K < 2) return 0.0;
   double ma = 0, mb = 0, ab = 0, aa = 0, bb = 0;
   for (int i = 0; i < K; i++) {
@@ -142,8 +146,11 @@ double sm_spectrum_distance(const sm_basis *a, const sm_basis *b) {
 static double squash(double s) { return 1.0 - exp(-s); }
 
 double sm_shape_spectral_term(const sm_shape *x, const sm_shape *y) {
-  return squash(sm_spectrum_ratio_distance(x->lb, y->lb, SM_DIST_SPECTRUM));
+  return squash(
+      sm_spectrum_ratio_distance(x->lb, y->lb, SM_DIST_SPECTRUM, SM_DIST_LEVEL_WEIGHT));
 }
+
+int sm_distance_uses_maps(void) { return SM_DIST_MAP_WEIGHT > 0; }
 
 int sm_shape_distance_ex(const sm_shape *x, const sm_shape *y, const int32_t *T_xy,
                          const int32_t *T_yx, const sm_distance_opts *o,
@@ -157,12 +164,16 @@ int sm_shape_distance_ex(const sm_shape *x, const sm_shape *y, const int32_t *T_
     return sm_error_set(err, SM_EINVAL, "unknown distance definition %d", o->def);
   if (!(o->map_weight >= 0) || !isfinite(o->map_weight))
     return sm_error_set(err, SM_EINVAL, "map_weight must be >= 0");
+  if (!(o->level_weight >= 0) || !isfinite(o->level_weight))
+    return sm_error_set(err, SM_EINVAL, "level_weight must be >= 0");
   if (!T_xy || !T_yx) return sm_error_set(err, SM_EINVAL, "distance needs maps both ways");
   int32_t nx = x->mesh->nv, ny = y->mesh->nv;
   for (int32_t v = 0; v < nx; v++)
-    if (T_xy[v] < 0 || T_xy[v] >= ny) return sm_error_set(err, SM_ERANGE, "T_xy[%d] = %d", v, T_xy[v]);
+    if (T_xy[v] < 0 || T_xy[v] >= ny)
+      return sm_error_set(err, SM_ERANGE, "T_xy[%d] = %d", v, T_xy[v]);
   for (int32_t v = 0; v < ny; v++)
-    if (T_yx[v] < 0 || T_yx[v] >= nx) return sm_error_set(err, SM_ERANGE, "T_yx[%d] = %d", v, T_yx[v]);
+    if (T_yx[v] < 0 || T_yx[v] >= nx)
+      return sm_error_set(err, SM_ERANGE, "T_yx[%d] = %d", v, T_yx[v]);
   int shipped = o->def == SM_DIST_SHIPPED;
   int32_t nmax = nx > ny ? nx : ny;
   double *Fx = malloc((size_t)nx * SM_DIST_TIMES * sizeof *Fx);
@@ -179,7 +190,8 @@ int sm_shape_distance_ex(const sm_shape *x, const sm_shape *y, const int32_t *T_
   if (shipped) {
     out->point_xy = squash(median_term(x, Fx, y, Fy, T_xy, W));
     out->point_yx = squash(median_term(y, Fy, x, Fx, T_yx, W));
-    out->spectrum_lb = squash(sm_spectrum_ratio_distance(x->lb, y->lb, o->spectrum_k));
+    out->spectrum_lb =
+        squash(sm_spectrum_ratio_distance(x->lb, y->lb, o->spectrum_k, o->level_weight));
     out->spectrum_elastic = -1;
     double w = o->map_weight;
     out->total = (out->spectrum_lb + w * 0.5 * (out->point_xy + out->point_yx)) / (1 + w);

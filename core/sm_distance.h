@@ -4,11 +4,20 @@
  * area); symmetric.
  *
  * Shipped definition (issue 11; docs/RESULTS.md section 3 has the measurements):
- *   Spectral term S. The RMS over i = 1..K (K = 50, or fewer if a basis is smaller) of
- *   log(lambda_i(X) / lambda_i(Y)), the non-zero LB eigenvalues in order, both shapes at
- *   unit area (sm_spectrum_ratio_distance). Isometry-invariant, so blind to pose; the
- *   overall level of the log eigenvalues is kept (the paper-style term below centers it
- *   away, and with it the proportions that separate the three human classes of tosca).
+ *   Spectral term S. With r_i = log(lambda_i(X) / lambda_i(Y)) over i = 1..K (K = 70, or
+ *   fewer if a basis is smaller), the non-zero LB eigenvalues in order, and m their mean:
+ *   S = sqrt(mean_i (r_i - m)^2 + beta m^2), beta = level_weight = SM_DIST_LEVEL_WEIGHT = 0
+ *   (sm_spectrum_ratio_distance). Isometry-invariant, so blind to pose; with beta = 0 also
+ *   scale-invariant: the shapes' relative size comes from the spectrum itself, not from
+ *   the mesh area. Why: the level m measures the spectrum against the area the mesh
+ *   reports, and surface perturbations that leave the shape alone move it (normal noise of
+ *   0.2 edge lengths inflates the area and lifts every log eigenvalue by ~0.03, the
+ *   quadric decimation to 40% lifts the high ones by FEM error), by as much as the level
+ *   separating tosca's three human classes (0.015-0.025). Chosen by a held-out check
+ *   (docs/RESULTS.md section 3): K and beta picked on the suite's robustness queries and
+ *   leave-one-out; checked on 160 deformed copies of other shapes, where every beta > 0
+ *   sent more noisy humans to another human class (K = 50 and 80, beta = 0.25..1: 26-28
+ *   of 32 right; beta = 0: 29-30; ShapeDNA 29), and K = 60..80 is a plateau.
  *   Map terms M_xy, M_yx. Per vertex v of X, the RMS over 8 times t_s = 10^(-3 + 2s/7) of
  *   log h_X(v, t) - log h_Y(T_xy(v), t), h the heat kernel signature in the LB basis
  *   (h(v, t) = sum_i exp(-t lambda_i) phi_i(v)^2, not centered); M_xy = its area-weighted
@@ -18,9 +27,10 @@
  *   Total = (S + w (M_xy + M_yx) / 2) / (1 + w), w = map_weight = SM_DIST_MAP_WEIGHT = 0:
  *   measured on tosca_classification_5k (bench/eval/dist_study.py, maps of the suite's
  *   distance preset), every w > 0 lowered the leave-one-out 1-NN accuracy with the default
- *   maps (w = 0: 1.000, 0.25: 0.975, 0.5-4: 0.950) and every retrieval figure, so the
- *   shipped total is the spectral term; the map terms are still computed and reported
- *   (point_xy, point_yx) and w is an option (sm_distance_opts).
+ *   maps and did not lift the deformed queries' accuracy above the spectral term's, so
+ *   the shipped total is the spectral term (sm_distance_uses_maps() = 0: QUERY needs no
+ *   match); the map terms are still computed and reported (point_xy, point_yx) and w is
+ *   an option (sm_distance_opts).
  *   spectrum_elastic = -1 (the elastic spectrum separated the classes worse: 0.75 LOO).
  *
  * Paper-style definition (SM_DIST_PAPER; the shipped one before issue 11): features = the
@@ -53,11 +63,13 @@ enum sm_distance_def {
   SM_DIST_PAPER = 1    /* the paper-style definition shipped before issue 11 (below) */
 };
 #define SM_DIST_MAP_WEIGHT 0.0
+#define SM_DIST_LEVEL_WEIGHT 0.0
 
 typedef struct sm_distance_opts {
   int def;           /* enum sm_distance_def */
-  double map_weight; /* shipped: w, the map term's weight (>= 0; 0 = spectrum only) */
-  int spectrum_k;    /* shipped: K, eigenvalues compared (<= 0: all both shapes have) */
+  double map_weight;   /* shipped: w, the map term's weight (>= 0; 0 = spectrum only) */
+  int spectrum_k;      /* shipped: K, eigenvalues compared (<= 0: all both shapes have) */
+  double level_weight; /* shipped: beta, the weight of the mean log ratio (>= 0) */
 } sm_distance_opts;
 
 void sm_distance_opts_default(sm_distance_opts *o);
@@ -72,8 +84,9 @@ int sm_shape_distance_ex(const sm_shape *x, const sm_shape *y, const int32_t *T_
 
 /* Adjusts matching options for a distance: both maps (want_yx), no tip search (it fires
  * on the low-confidence maps of pairs of different classes, at one match per hypothesis),
- * and no mirror check (orientation_fix = 0). The check reruns the refinement from the map composed with the
- * target's self-symmetry when the map looks mirrored: up to a second match, and it fires
+ * and no mirror check (orientation_fix = 0). The check reruns the refinement from the map
+ * composed with the target's self-symmetry when the map looks mirrored: up to a second
+ * match, and it fires
  * mostly on pairs of different classes, whose maps are poor either way. Measured on
  * tosca pairs (k = 50): within-class distances unchanged; cross-class ones moved by -13%
  * to +25%, all staying far above the within-class ones; 30-60% less time on those pairs.
@@ -86,13 +99,19 @@ void sm_distance_match_opts(sm_match_opts *o);
  * is the shipped total, so the prefilter's ranking is the final one. */
 double sm_shape_spectral_term(const sm_shape *x, const sm_shape *y);
 
+/* 1 when the shipped total depends on the maps (default map weight > 0); 0 when it is
+ * the spectral term alone, so a ranking by sm_shape_spectral_term is already exact. */
+int sm_distance_uses_maps(void);
+
 /* The paper-style spectral term: 1 - cos of the centered log positive eigenvalues of a and
  * b, the first min(50, ...) of them. */
 double sm_spectrum_distance(const sm_basis *a, const sm_basis *b);
 
-/* The shipped spectral term before squashing: the RMS over i = 1..K of
- * log(lambda_i(a) / lambda_i(b)), non-zero eigenvalues in order (K <= 0 or above what both
- * have: all of them). Bases of shapes at unit area (sm_mesh_normalize); >= 0. */
-double sm_spectrum_ratio_distance(const sm_basis *a, const sm_basis *b, int K);
+/* The shipped spectral term before squashing: with r_i = log(lambda_i(a) / lambda_i(b))
+ * over i = 1..K, non-zero eigenvalues in order (K <= 0 or above what both have: all of
+ * them), and m their mean: sqrt(mean (r_i - m)^2 + level m^2). level = 1: the RMS of r_i
+ * (the definition shipped before the robustness study), 0: scale-invariant. Bases of
+ * shapes at unit area (sm_mesh_normalize) when level > 0; >= 0. */
+double sm_spectrum_ratio_distance(const sm_basis *a, const sm_basis *b, int K, double level);
 
 #endif

@@ -178,6 +178,25 @@ static void test_distance_properties(void) {
   sm_mesh_destroy(b);
 }
 
+/* The shipped spectral term on hand-made spectra: a uniform scale of every eigenvalue
+ * (what a wrong area normalization does) costs nothing with level 0 and exactly
+ * sqrt(level) |log c| otherwise; the zero eigenvalue is skipped; K limits the count. */
+static void test_spectral_level(void) {
+  double ea[6] = {0, 1, 2, 3, 5, 8}, eb[6], ec[6] = {0, 1, 3, 3, 4, 9};
+  const double c = 1.07;
+  for (int i = 0; i < 6; i++) eb[i] = c * ea[i];
+  sm_basis a = {.k = 6, .evals = ea}, b = {.k = 6, .evals = eb}, d = {.k = 6, .evals = ec};
+  CHECK_NEAR(sm_spectrum_ratio_distance(&a, &b, 0, 0.0), 0.0, 1e-12);
+  CHECK_NEAR(sm_spectrum_ratio_distance(&a, &b, 0, 1.0), log(c), 1e-12);
+  CHECK_NEAR(sm_spectrum_ratio_distance(&a, &b, 3, 0.25), 0.5 * log(c), 1e-12);
+  double ad = sm_spectrum_ratio_distance(&a, &d, 0, 0.0);
+  CHECK(ad > 0.05);
+  CHECK_NEAR(ad, sm_spectrum_ratio_distance(&d, &a, 0, 0.0), 1e-15);
+  /* only the first two non-zero eigenvalues (1, 2 vs 1, 3): log ratios 0 and log(2/3) */
+  double r = log(2.0 / 3.0);
+  CHECK_NEAR(sm_spectrum_ratio_distance(&a, &d, 2, 0.0), fabs(r) / 2, 1e-12);
+}
+
 /* The per-shape cache (farthest-point samples, coarse operators): a match that fills it
  * (two threads at once), one that reads it and one without it give the same maps. */
 typedef struct cache_job {
@@ -354,6 +373,7 @@ int main(int argc, char **argv) {
     for (int i = 0; i < 2; i++) self_match_case(bases[b], inits[i]);
   test_mirror();
   test_distance_properties();
+  test_spectral_level();
   test_shape_cache();
   test_confidence();
   /* Bounds: the mean geodesic errors bench_match measured with the default pipeline
