@@ -538,7 +538,9 @@ static void fan_start(sm_job *job, uint32_t n, fan_unit_fn unit, fan_finish_fn f
  * Modes (PROTOCOL.md 5.9): SPECTRAL ranks every candidate by the spectral distance alone;
  * FULL matches the query against every candidate (sm_match + sm_shape_distance); DEFAULT
  * ranks every candidate spectrally, then computes the full distance for the best
- * QUERY_SHORTLIST(k) of them and returns those ranked by the full distance. Each
+ * QUERY_SHORTLIST(k) of them and returns those ranked by the full distance; when the
+ * shipped distance is the spectral term alone (sm_distance_uses_maps() = 0, the default),
+ * the spectral ranking is already the full one and DEFAULT stops there. Each
  * candidate of a phase is one fan-out unit (preparing its bases when they are not cached
  * is part of the unit), so a query uses the whole pool. */
 
@@ -747,7 +749,7 @@ static int query_next_phase(query_ctx *c) {
       return 0;
     }
     c->considered = n;
-    if (c->q.mode == SM_QUERY_SPECTRAL) {
+    if (c->q.mode == SM_QUERY_SPECTRAL || !sm_distance_uses_maps()) {
       free(v);
       return 0;
     }
