@@ -57,7 +57,7 @@ typedef struct hard_pair {
   /* results */
   int ok;
   char error[1200];
-  double err_mean, err_max, confidence, orientation, continuity, cycle, distortion, t_init,
+  double err_mean, err_max, confidence, orientation, continuity, cycle, distortion, turns, t_init,
       t_refine, t_total;
   int flipped, hypothesis, ext_tried, ext_hypothesis;
 } hard_pair;
@@ -256,6 +256,7 @@ static int run_pair(const bench_cfg *c, hard_pair *p, sm_error *err) {
     p->continuity = r.continuity;
     p->cycle = r.cycle;
     p->distortion = r.distortion;
+    p->turns = r.turns;
     p->t_init = r.t_init;
     p->t_refine = r.t_refine;
     p->flipped = r.flipped;
@@ -391,6 +392,7 @@ static void write_json(const char *path, const bench_cfg *c, const hard_pair *P,
       jnum(f, "continuity", p->continuity, 1);
       jnum(f, "cycle", p->cycle, 1);
       jnum(f, "distortion", p->distortion, 1);
+      jnum(f, "turns", p->turns, 1);
       fprintf(f, "\"hypothesis\": %d, \"flipped\": %d, ", p->hypothesis, p->flipped);
       fprintf(f, "\"ext_tried\": %d, \"ext_hypothesis\": %d, ", p->ext_tried, p->ext_hypothesis);
       jnum(f, "t_init", p->t_init, 1);

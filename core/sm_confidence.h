@@ -15,7 +15,7 @@
  * field's threshold for a failed correspondence, 0.1). A correct self-map scores 1 on each
  * factor; a scrambled map scores near 0 on each.
  *
- * Geodesic distortion (sm_map_distortion): how far T is from an isometry, measured on
+ * Geodesic distortion (sm_map_turns): how far T is from an isometry, measured on
  * samples s_a of X with edge-path distances d (unit area):
  *   sum_{a != b} |d_X(s_a, s_b) - d_Y(T s_a, T s_b)| / sum_{a != b} d_X(s_a, s_b)
  * 0 for an isometry, about 0.08-0.12 for right maps between two people, 0.2-0.5 when a
@@ -49,9 +49,33 @@ int sm_map_confidence(const sm_mesh *X, const sm_mesh *Y, const double *mass_x,
                       const int32_t *T, const int32_t *T_yx, sm_confidence *out,
                       sm_error *err);
 
-/* Distortion of T (n_X entries) over the ns samples src of X whose pairwise distances are
- * src_dist (row-major, leading dimension ld >= ns); paths_y searches Y (sm_metrics.h). */
-int sm_map_distortion(sm_edge_paths *paths_y, const int32_t *T, const int32_t *src,
-                      const double *src_dist, int ns, int ld, double *out, sm_error *err);
+/* Geodesic directions at sample vertices. At sample c, the direction toward sample a is
+ * minus the gradient of the edge-path distance from a, fitted by least squares over the
+ * vertices within SM_DIR_RADIUS (Euclidean, unit area) whose normal is within 60 degrees
+ * of c's, in c's tangent plane: two coordinates in a frame fixed by c's outward normal.
+ * sm_dir_probe_create keeps the neighbourhoods and frames of the samples `at` (the mesh
+ * is borrowed for the probe's life); sm_dir_probe_eval writes dir[2 c] for every sample c
+ * from one distance field. A probe is read only after creation (shareable). */
+#define SM_DIR_RADIUS 0.1
+typedef struct sm_dir_probe sm_dir_probe;
+int sm_dir_probe_create(const sm_mesh *m, const int32_t *at, int na, sm_dir_probe **out,
+                        sm_error *err);
+void sm_dir_probe_eval(const sm_dir_probe *p, const double *field, double *dir);
+void sm_dir_probe_destroy(sm_dir_probe *p);
+
+/* Orientation of T seen at the scale of body parts: for each sample c and pairs of other
+ * samples a, b within half of the largest sample distance, the turn from the direction
+ * toward a to the direction toward b (sign of their 2D cross product, outward normal up) on
+ * X, and at T(c) toward T(a), T(b) on Y. A mirror reverses every turn, a map that is right
+ * at large scale keeps most of them even when it is noisy from triangle to triangle (where
+ * sm_map_orientation_score reads about 0 between species). Turns of nearly collinear
+ * directions (|sin| < 0.3) are skipped. Result: the mean agreement, in [-1, 1] (0 when no
+ * turn qualifies). T has n_X entries; src are ns samples of X with pairwise distances
+ * src_dist (row-major, leading dimension ld >= ns) and directions dir_x[2 (c ns + a)]
+ * (sm_dir_probe_eval per source field); the Y side is measured here with one path search
+ * (paths_y, on Y) per sample, which also gives the geodesic distortion (*distortion). */
+int sm_map_turns(sm_edge_paths *paths_y, const sm_mesh *Y, const int32_t *T,
+                 const int32_t *src, const double *src_dist, const double *dir_x, int ns,
+                 int ld, double *distortion, double *turns, sm_error *err);
 
 #endif

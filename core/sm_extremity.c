@@ -4,6 +4,7 @@
 #include <stdlib.h>
 #include <string.h>
 
+#include "sm_confidence.h"
 #include "sm_metrics.h"
 
 /* Tips considered in the assignment search: the SM_EXT_ASSIGN + 1 with the largest AGD
@@ -19,6 +20,22 @@ typedef struct ext_work {
   double *agd, *d;          /* nv each */
   double *rows[SM_EXT_MAX]; /* distances from each accepted tip */
 } ext_work;
+
+/* set->src_dir from one more path search per source (the AGD loop cannot keep them: a
+ * direction at an early source needs the fields of sources found later). */
+static int ext_directions(ext_work *w, sm_ext_set *set, sm_error *err) {
+  sm_dir_probe *probe = NULL;
+  double col[2 * SM_EXT_SOURCES];
+  int rc = sm_dir_probe_create(w->m, set->src, SM_EXT_SOURCES, &probe, err);
+  for (int a = 0; !rc && a < SM_EXT_SOURCES; a++) {
+    if ((rc = sm_edge_paths_run(w->paths, set->src[a], w->d, err))) break;
+    sm_dir_probe_eval(probe, w->d, col);
+    for (int c = 0; c < SM_EXT_SOURCES; c++)
+      set->src_dir[c][a][0] = col[2 * c], set->src_dir[c][a][1] = col[2 * c + 1];
+  }
+  sm_dir_probe_destroy(probe);
+  return rc;
+}
 
 /* AGD over farthest-point sources; a vertex's mean runs over the sources that reach it, so
  * the first source of a new component is where the last search left vertices unreached. */
@@ -45,7 +62,7 @@ static int ext_agd(ext_work *w, sm_ext_set *set, sm_error *err) {
   for (int32_t v = 0; !rc && v < nv; v++) w->agd[v] = cnt[v] ? w->agd[v] / cnt[v] : 0;
   free(mind);
   free(cnt);
-  return rc;
+  return rc ? rc : ext_directions(w, set, err);
 }
 
 typedef struct ext_cand {

@@ -40,9 +40,12 @@ typedef struct sm_ext_set {
                                           +inf between components */
   /* The AGD's farthest-point sources and their pairwise edge-path distances (unit area,
    * not divided by the mean AGD; +inf between components): samples on which a map's
-   * geodesic distortion is measured (sm_map_distortion). */
+   * geodesic distortion is measured (sm_map_turns). */
   int32_t src[SM_EXT_SOURCES];
   double src_dist[SM_EXT_SOURCES][SM_EXT_SOURCES];
+  /* src_dir[c][a]: the geodesic direction at source c toward source a, in c's tangent
+   * frame (sm_dir_probe, sm_confidence.h): what sm_map_turns compares a map's turns with. */
+  double src_dir[SM_EXT_SOURCES][SM_EXT_SOURCES][2];
 } sm_ext_set;
 
 typedef struct sm_ext_hypothesis {

@@ -679,16 +679,21 @@ typedef struct tip_judge {
   sm_edge_paths *px, *py;
 } tip_judge;
 
-static int judge(const tip_judge *j, sm_match_result *r, double *score, sm_error *err) {
-  double xy, yx;
-  int rc = sm_map_distortion(j->py, r->T, j->tx->src, &j->tx->src_dist[0][0],
-                             SM_EXT_SOURCES, SM_EXT_SOURCES, &xy, err);
+static int judge(const tip_judge *j, const sm_shape *x, const sm_shape *y, sm_match_result *r,
+                 double *score, sm_error *err) {
+  double xy, yx, turns_xy, turns_yx;
+  int rc = sm_map_turns(j->py, y->mesh, r->T, j->tx->src, &j->tx->src_dist[0][0],
+                        &j->tx->src_dir[0][0][0], SM_EXT_SOURCES, SM_EXT_SOURCES, &xy,
+                        &turns_xy, err);
   if (!rc)
-    rc = sm_map_distortion(j->px, r->T_yx, j->ty->src, &j->ty->src_dist[0][0],
-                           SM_EXT_SOURCES, SM_EXT_SOURCES, &yx, err);
+    rc = sm_map_turns(j->px, x->mesh, r->T_yx, j->ty->src, &j->ty->src_dist[0][0],
+                      &j->ty->src_dir[0][0][0], SM_EXT_SOURCES, SM_EXT_SOURCES, &yx,
+                      &turns_yx, err);
   if (rc) return rc;
   r->distortion = (xy + yx) / 2;
-  *score = r->continuity + 0.5 * (r->orientation < 0 ? r->orientation : 0) - r->distortion;
+  r->turns = turns_xy;
+  *score = r->continuity + 0.5 * (r->orientation < 0 ? r->orientation : 0) - r->distortion +
+           r->turns;
   return SM_OK;
 }
 
@@ -696,7 +701,7 @@ static int tip_hypotheses(const sm_shape *x, const sm_shape *y, const sm_match_o
                           const tip_judge *j, const sm_ext_hypothesis *h, int nh,
                           sm_match_result *res, sm_error *err) {
   double best;
-  int rc = judge(j, res, &best, err);
+  int rc = judge(j, x, y, res, &best, err);
   for (int i = 0; !rc && i < nh; i++) {
     sm_match_opts ho = *o;
     ho.extremities = SM_EXT_OFF;
@@ -707,7 +712,7 @@ static int tip_hypotheses(const sm_shape *x, const sm_shape *y, const sm_match_o
     double score;
     if ((rc = sm_match(x, y, &ho, &r, err))) break;
     res->ext_tried = i + 1;
-    if (!(rc = judge(j, &r, &score, err)) && score > best) {
+    if (!(rc = judge(j, x, y, &r, &score, err)) && score > best) {
       best = score;
       r.ext_tried = res->ext_tried;
       r.ext_hypothesis = i + 1;

@@ -1,12 +1,15 @@
 /* test_extremity: tips of a shape and the tip hypotheses (sm_extremity), on a "star": a
  * sphere with five spikes of distinct lengths in known directions, so the tips and their
  * correspondence are known exactly. Also the reusable path search (sm_edge_paths) against
- * the one-shot Dijkstra, and the tip search inside sm_match on a permuted copy. */
+ * the one-shot Dijkstra, the tip search inside sm_match on a permuted copy, and the
+ * geodesic directions and turns its choice uses (sm_confidence: a sphere's known
+ * directions, a copy's and a mirror's turns). */
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
 
+#include "sm_confidence.h"
 #include "sm_extremity.h"
 #include "sm_match.h"
 #include "sm_metrics.h"
@@ -177,7 +180,114 @@ static void test_match_always(void) {
   sm_mesh_destroy(y);
 }
 
+/* Unit-area ellipsoid with three distinct axes: mirror symmetric in x (the icosphere's
+ * vertex set is symmetric under each coordinate reflection), with no other symmetry that
+ * keeps orientation and the distances in play. */
+static sm_mesh *ellipsoid(void) {
+  sm_mesh *m = tm_icosphere(4);
+  const double axis[3] = {1.0, 1.6, 2.3};
+  for (int32_t v = 0; v < m->nv; v++)
+    for (int d = 0; d < 3; d++) m->V[3 * v + d] *= axis[d];
+  sm_error err = {0};
+  REQUIRE(sm_mesh_normalize(m, &err) == 0);
+  return m;
+}
+
+/* Geodesic directions on a sphere are known: at c toward a, the tangent projection of the
+ * chord a - c (a great circle). The probe's fit of the edge-path distance must agree. */
+static void test_directions_on_sphere(void) {
+  sm_mesh *m = tm_icosphere(4);
+  sm_error err = {0};
+  REQUIRE(sm_mesh_normalize(m, &err) == 0);
+  sm_ext_set *t;
+  REQUIRE(sm_ext_detect(m, &t, &err) == 0);
+  double worst = 0, mean = 0;
+  int n = 0;
+  for (int c = 0; c < SM_EXT_SOURCES; c++) {
+    const double *pc = m->V + 3 * t->src[c];
+    double nrm[3], e1[3], e2[3];
+    unit(pc, nrm); /* sphere centred at the origin after normalization */
+    for (int a = 0; a < SM_EXT_SOURCES; a++) {
+      const double *pa = m->V + 3 * t->src[a];
+      double ch[3] = {pa[0] - pc[0], pa[1] - pc[1], pa[2] - pc[2]};
+      double dn = ch[0] * nrm[0] + ch[1] * nrm[1] + ch[2] * nrm[2];
+      for (int d = 0; d < 3; d++) e1[d] = ch[d] - dn * nrm[d];
+      double len = sqrt(e1[0] * e1[0] + e1[1] * e1[1] + e1[2] * e1[2]);
+      if (a == c || len < 0.05) continue; /* itself, or (nearly) antipodal */
+      /* the probe's 2D direction lifted back to 3D through the same tangent frame */
+      double u[3] = {1, 0, 0};
+      if (fabs(nrm[0]) > 0.8) u[0] = 0, u[1] = 1;
+      double un = u[0] * nrm[0] + u[1] * nrm[1] + u[2] * nrm[2];
+      for (int d = 0; d < 3; d++) e2[d] = u[d] - un * nrm[d];
+      unit(e2, e2);
+      double e3[3] = {nrm[1] * e2[2] - nrm[2] * e2[1], nrm[2] * e2[0] - nrm[0] * e2[2],
+                      nrm[0] * e2[1] - nrm[1] * e2[0]};
+      const double *g = t->src_dir[c][a];
+      double lift[3], gl = hypot(g[0], g[1]);
+      for (int d = 0; d < 3; d++) lift[d] = (g[0] * e2[d] + g[1] * e3[d]) / gl;
+      double cosang = (lift[0] * e1[0] + lift[1] * e1[1] + lift[2] * e1[2]) / len;
+      double ang = acos(cosang > 1 ? 1 : cosang) * 180 / M_PI;
+      worst = ang > worst ? ang : worst;
+      mean += ang, n++;
+    }
+  }
+  mean /= n;
+  /* edge paths zigzag along the mesh, so their distance field is not exactly geodesic
+   * (measured: mean 5.9, worst 18 degrees); a wrong frame or sign would be off by 90-180 */
+  CHECK_MSG(mean < 8 && worst < 25, "direction error mean %.2f, worst %.2f degrees", mean,
+            worst);
+  sm_ext_destroy(t);
+  sm_mesh_destroy(m);
+}
+
+/* Turns: a permuted copy keeps every turn (+1, no distortion); the mirror image x -> -x of
+ * the ellipsoid, an isometry, reverses every turn (-1) with no distortion either: the one
+ * thing the distortion cannot see. */
+static void test_turns_copy_and_mirror(void) {
+  sm_mesh *x = ellipsoid();
+  int32_t *perm = malloc((size_t)x->nv * sizeof *perm), *T = malloc((size_t)x->nv * sizeof *T);
+  tm_permutation(perm, x->nv, 5);
+  sm_mesh *y = tm_permuted(x, perm);
+  sm_error err = {0};
+  sm_ext_set *t;
+  sm_edge_paths *py, *px;
+  REQUIRE(sm_ext_detect(x, &t, &err) == 0);
+  REQUIRE(sm_edge_paths_create(y, &py, &err) == 0);
+  REQUIRE(sm_edge_paths_create(x, &px, &err) == 0);
+  for (int32_t u = 0; u < y->nv; u++) T[perm[u]] = u; /* y's vertex u is x's perm[u] */
+  double dist, turns;
+  REQUIRE(sm_map_turns(py, y, T, t->src, &t->src_dist[0][0], &t->src_dir[0][0][0],
+                       SM_EXT_SOURCES, SM_EXT_SOURCES, &dist, &turns, &err) == 0);
+  CHECK_MSG(turns > 0.99 && dist < 1e-12, "copy: turns %g distortion %g", turns, dist);
+  int exact = 1;
+  for (int32_t v = 0; v < x->nv; v++) {
+    const double *p = x->V + 3 * v;
+    double best = INFINITY;
+    for (int32_t w = 0; w < x->nv; w++) {
+      const double *q = x->V + 3 * w;
+      double d = fabs(p[0] + q[0]) + fabs(p[1] - q[1]) + fabs(p[2] - q[2]);
+      if (d < best) best = d, T[v] = w;
+    }
+    exact &= best < 1e-9;
+  }
+  REQUIRE(exact);
+  REQUIRE(sm_map_turns(px, x, T, t->src, &t->src_dist[0][0], &t->src_dir[0][0][0],
+                       SM_EXT_SOURCES, SM_EXT_SOURCES, &dist, &turns, &err) == 0);
+  CHECK_MSG(turns < -0.9 && dist < 0.02, "mirror: turns %g distortion %g", turns, dist);
+  CHECK(sm_map_turns(NULL, x, T, t->src, &t->src_dist[0][0], &t->src_dir[0][0][0],
+                     SM_EXT_SOURCES, SM_EXT_SOURCES, &dist, &turns, &err) == SM_EINVAL);
+  sm_edge_paths_destroy(px);
+  sm_edge_paths_destroy(py);
+  sm_ext_destroy(t);
+  free(perm);
+  free(T);
+  sm_mesh_destroy(x);
+  sm_mesh_destroy(y);
+}
+
 int main(void) {
+  test_directions_on_sphere();
+  test_turns_copy_and_mirror();
   test_paths_match_dijkstra();
   test_star_tips();
   test_hypotheses_on_copy();
