@@ -116,15 +116,15 @@ def confusion(s):
 def section_classify(out, md):
     cl = load(out, "classify.json")
     md.append("## 3. Shape distance and classification (tosca_classification_5k)\n")
-    md.append("**The shipped distance changed (issue 11)** to the RMS log ratio of the first 50 "
-              "LB eigenvalues (`core/sm_distance.h`; map terms reported, weight 0). Measured "
-              "offline on the maps of this suite's distance preset (`bench/eval/dist_dump`, "
-              "`dist_study.py`): leave-one-out 1-NN 1.000, 80/20 1.000, 70/30 0.991 "
-              "(F1 0.990), humans merged 1.000; NN 1.000, FT 0.925, ST 0.969, DCG 0.979, "
-              "mAP 0.961; ShapeDNA 0.950 LOO, mAP 0.891. Deformed queries 6/8 right for "
-              "each deformation (ShapeDNA 5-7). The tables below are the last full suite run, "
-              "made with the paper-style definition; a rerun (`bench/eval/run.sh classify`) "
-              "replaces them.\n")
+    md.append("**Shipped distance** (issue 11, `core/sm_distance.h`): with r_i = log(lambda_i(X) "
+              "/ lambda_i(Y)) over the first K = 70 non-zero LB eigenvalues (unit area) and m "
+              "their mean, the spread sqrt(mean (r_i - m)^2) (level weight beta = 0: "
+              "scale-invariant), squashed 1 - exp(-s); the map terms (area-weighted median of "
+              "the log-HKS difference through each map) are computed and reported with weight "
+              "0. So every configuration below gives the same shipped distance (the maps do "
+              "not enter it); the rows marked `+maps w=1` weight each configuration's map "
+              "terms in (map_weight 1), from the same run. Why K = 70 and beta = 0: the "
+              "held-out study at the end of this section.\n")
     if not cl:
         md.append("_Not run yet (`bench/eval/run.sh classify`)._\n")
         return
@@ -135,7 +135,7 @@ def section_classify(out, md):
               f"{n * (n - 1) // 2} distances per configuration, computed **through the daemon** "
               "with `shapematch batch` (the distance is symmetric, so each unordered pair once). "
               f"Distance preset: refinement up to k = {cl['k']}, {cl['sinkhorn_steps']} soft "
-              "Sinkhorn step(s) for sinkhorn rows; the cosine distance of core/sm_distance.h. "
+              "Sinkhorn step(s) for sinkhorn rows (the maps feed only the `+maps` rows). "
               "ShapeDNA: cosine distance of the first 30 non-zero LB eigenvalues at unit area. "
               "1-NN classification: leave-one-out, and stratified 80/20 and 70/30 splits "
               f"(means over seeds 0..19); macro precision / recall / F1 / specificity.\n")
@@ -173,6 +173,43 @@ def section_classify(out, md):
         md.append(f"\nConfusion matrix, {DEFAULT}, leave-one-out, 8 classes:\n\n")
         md.append(confusion(cl["configs"][DEFAULT]["classes_8"]["loo"]))
     md.append("\n![distance matrices ordered by class](eval/classify_heatmaps.png)\n")
+    section_spectral_study(out, md)
+
+
+def section_spectral_study(out, md):
+    st = load(out, "spectral_study.json")
+    if not st:
+        return
+    kinds = st["deformations"]
+    md.append("**Choice of the spectral term, with a held-out check** "
+              "(`bench/eval/spectral_study.py`; no map needed, so the whole grid runs in "
+              "minutes). Rows: K eigenvalues, level weight beta (1 = the RMS log ratio "
+              "shipped before, 0 = scale-invariant). LOO / 70/30 / mAP: the 40 shapes. A: the "
+              f"suite's robustness queries (first shape of each class, /{st['queries_A']}); "
+              f"B: the same deformations of the 2nd-5th shapes (/{st['queries_B']}), held out. "
+              "Rule, applied on the 40 shapes and A only: LOO >= 0.975 and A >= ShapeDNA for "
+              "every deformation (`rule`); B then says whether the choice holds on shapes it "
+              "never saw (`B ok` = B >= ShapeDNA for every deformation).\n")
+    rows = []
+    for name, r in st["rows"].items():
+        rows.append([f"**{name}**" if name == "K=70 beta=0" else name, r["loo"],
+                     r["split_70_30"], r["map"]] + [str(r["A"][k]) for k in kinds]
+                    + [str(r["B"][k]) for k in kinds]
+                    + [("rule" if r["chosen_by_rule"] else "") +
+                       (" B ok" if r["B_at_least_shapedna"] else "")])
+    short = [k.replace("stretch", "str").replace("decimate", "dec").replace("noise", "noi")
+             for k in kinds]
+    md.append(table(["spectral term", "LOO", "70/30", "mAP"] + [f"A {k}" for k in short]
+                    + [f"B {k}" for k in short] + ["passes"], rows))
+    md.append("\nRows that pass the rule and hold on B: beta = 0 with K = 60, 70 and 80 (a "
+              "plateau; the shipped K = 70 is its middle) and K = 40 with beta = 0.25 (alone: "
+              "its neighbours K = 30 and 50 fail one side). From K = 50 up, every beta > 0 gets "
+              "fewer noisy queries of B right (26-28 of 32, ShapeDNA 29, beta = 0 29-30): "
+              "normal noise inflates the mesh area and so lifts every log eigenvalue at unit "
+              "area by ~0.03, as much as the level that separates david, michael and victoria. "
+              "No row reaches 7/8 on the stretches: a 1.2x stretch moves the log spectrum of a "
+              "human by an RMS of 0.06, more than the gap between the three human classes "
+              "(0.03-0.05), and every miss is a human sent to another human class.\n")
 
 
 def section_visual(out, md):
@@ -204,7 +241,9 @@ def section_robust(out, md):
               "decimation to a fraction of the vertices; noise along the normals in mean edge "
               "lengths). Each deformed query is classified by its nearest neighbour among the "
               "other 39 undeformed shapes (its own original excluded). Entries: correct / "
-              "queries.\n")
+              "queries. The shipped distance does not depend on the maps (map weight 0), so "
+              "the default configuration stands for all of them; section 3's study has 160 "
+              "more deformed queries (set B, other shapes of each class).\n")
     cfgs = list(ro["configs"])
     rows = []
     for kind, s in ro["deformations"]:
@@ -221,21 +260,29 @@ def section_targets(out, md):
     lines = []
     if cl and DEFAULT in cl["configs"]:
         acc = cl["configs"][DEFAULT]["classes_8"]["loo"]["accuracy"]
+        merged = cl["configs"][DEFAULT]["classes_6"]["loo"]["accuracy"]
         lines.append(f"- Leave-one-out 1-NN accuracy, 8 classes, {DEFAULT}: {acc:.3f} "
-                     f"(target 1.0: {'met' if acc >= 1.0 else 'NOT met'}); ShapeDNA "
-                     f"{cl['configs']['shapedna']['classes_8']['loo']['accuracy']:.3f}.")
+                     f"(target >= 0.975: {'met' if acc >= 0.975 else 'NOT met'}); humans "
+                     f"merged {merged:.3f} (target 1.0: {'met' if merged >= 1.0 else 'NOT met'}); "
+                     f"ShapeDNA {cl['configs']['shapedna']['classes_8']['loo']['accuracy']:.3f}.")
         others = {c: r["classes_8"] for c, r in cl["configs"].items() if c != DEFAULT}
         d = cl["configs"][DEFAULT]["classes_8"]
         worse = [c for c, s in others.items()
                  if any(s[k]["accuracy"] > d[k]["accuracy"] + 1e-12 or s[k]["f1"] > d[k]["f1"] + 1e-12
                         for k in ("loo", "split_80_20", "split_70_30"))]
-        lines.append(f"- {DEFAULT} >= every other configuration on accuracy and F1 (LOO, 80/20, "
-                     f"70/30, 8 classes): {'met' if not worse else 'NOT met, beaten by ' + ', '.join(worse)}.")
-    if ro and DEFAULT in ro["configs"] and "stretch 1.4" in ro["configs"][DEFAULT]["accuracy"]:
-        a = ro["configs"][DEFAULT]["accuracy"]["stretch 1.4"]
-        b = ro["configs"]["shapedna"]["accuracy"]["stretch 1.4"]
-        lines.append(f"- Under a 1.4x stretch: {DEFAULT} {a:.3f} (target >= 0.95: "
-                     f"{'met' if a >= 0.95 else 'NOT met'}), ShapeDNA {b:.3f}.")
+        lines.append(f"- {DEFAULT} >= every other configuration and ShapeDNA on accuracy and F1 "
+                     f"(LOO, 80/20, 70/30, 8 classes): "
+                     f"{'met' if not worse else 'NOT met, beaten by ' + ', '.join(worse)}.")
+    if ro and DEFAULT in ro["configs"] and "shapedna" in ro["configs"]:
+        got, ref = ro["configs"][DEFAULT], ro["configs"]["shapedna"]
+        keys = list(got["correct"])
+        low = [k for k in keys if got["correct"][k] < 7 / 8 * got["n_queries"][k]]
+        below = [k for k in keys if got["correct"][k] < ref["correct"][k]]
+        per = ", ".join(f"{k} {got['correct'][k]}/{got['n_queries'][k]} "
+                        f"(ShapeDNA {ref['correct'][k]})" for k in keys)
+        lines.append(f"- Deformed queries, {DEFAULT}: {per}. Target >= 7/8 for every "
+                     f"deformation: {'met' if not low else 'NOT met (' + ', '.join(low) + ')'}; "
+                     f"never below ShapeDNA: {'met' if not below else 'NOT met (' + ', '.join(below) + ')'}.")
     tm = load(out, "timing.json") or {}
     if tm:
         total = sum(v["wall_s"] for v in tm.values())

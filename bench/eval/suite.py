@@ -44,6 +44,7 @@ DEFAULT_CONFIG = "sinkhorn+elastic"
 HUMANS = {"david", "michael", "victoria"}
 # The terms of the distance (core/sm_distance.h), kept per pair for analysis.
 PARTS = ["point_xy", "point_yx", "spectrum_lb", "spectrum_elastic"]
+MAPS_SUFFIX = "+maps w=1"
 
 # The shape distance used for retrieval and classification: the product's distance
 # (core/sm_distance.h) after a lighter refinement than a full match (k up to CLASSIFY_K,
@@ -51,9 +52,10 @@ PARTS = ["point_xy", "point_yx", "spectrum_lb", "spectrum_elastic"]
 # (0.34 s per distance instead of 1.0-1.3 s with the match defaults, measured warm).
 CLASSIFY_K = 50
 SINKHORN_STEPS = 0
-# Robustness: every configuration classifies 8 deformed queries x 39 gallery shapes per
-# deformation; this default set keeps the part near 15 minutes on 2 cores. --deformations
-# runs any other set (e.g. stretch:1.1,stretch:1.2,...,stretch:1.5).
+# Robustness: 8 deformed queries x 39 gallery shapes per deformation, classified with the
+# default configuration (the shipped distance does not depend on the maps, map weight 0 in
+# core/sm_distance.h, so every configuration gives the same answers; --configs runs
+# others) and ShapeDNA. --deformations runs any other set (e.g. stretch:1.1,...,stretch:1.5).
 DEFORMATIONS = [("stretch", 1.2), ("stretch", 1.4), ("bulge", 0.3), ("decimate", 0.4),
                 ("noise", 0.2)]
 
@@ -295,6 +297,12 @@ class Suite:
                                           "per_distance_s": wall / len(pairs),
                                           "parts": {k: P[m].tolist() for m, k in enumerate(PARTS)}}
                 log(f"  {cfg}: {len(pairs)} distances in {wall:.0f} s")
+            # The same maps with the map terms weighted in (map_weight 1 of sm_distance.h):
+            # what each configuration's maps would add to the spectral term.
+            for cfg in configs:
+                p = {k: np.array(v) for k, v in result["configs"][cfg]["parts"].items()}
+                D = (p["spectrum_lb"] + 0.5 * (p["point_xy"] + p["point_yx"])) / 2
+                result["configs"][f"{cfg} {MAPS_SUFFIX}"] = {"D": D.tolist()}
         finally:
             self.stop_daemon()
         t1 = time.time()
@@ -315,7 +323,7 @@ class Suite:
         return [("stretch", 1.4)] if self.quick else DEFORMATIONS
 
     def robust(self, configs=None):
-        configs = configs or self.configs
+        configs = configs or (self.configs if self.configs != CONFIGS else [DEFAULT_CONFIG])
         if not os.path.isdir(TOSCA):
             log("robust: skipped (no ../shared/data)")
             return None

@@ -1,0 +1,147 @@
+#!/usr/bin/python3
+"""spectral_study: the choice of the shipped spectral term, with a held-out check (issue 11).
+
+    bench/eval/spectral_study.py [--build DIR] [--work DIR] [--out docs/eval]
+
+The shipped distance (core/sm_distance.h) compares r_i = log(lambda_i(X) / lambda_i(Y)),
+i = 1..K, the non-zero LB eigenvalues at unit area, as sqrt(mean (r_i - m)^2 + beta m^2),
+m = mean r_i. This script scores every (K, beta) of a grid, and ShapeDNA, on
+tosca_classification_5k without any map (the term needs none):
+
+  - leave-one-out 1-NN accuracy, 70/30 accuracy and mAP over the 40 shapes (suite.py's
+    scoring functions);
+  - set A, the suite's robustness queries (`run.sh robust`): the first shape of each class
+    deformed 5 ways (stretch 1.2 / 1.4, bulge 0.3, decimation to 40%, noise 0.2), each
+    classified by its nearest neighbour among the other 39 shapes;
+  - set B, held out: the same deformations of the 2nd..5th shape of each class (160
+    queries), never used to choose.
+
+Choice rule, on the 40 shapes and set A only: leave-one-out >= 0.975 and, for every
+deformation, at least as many right as ShapeDNA; B then checks the rule's survivors.
+Deformations are made with eval_tool deform (seed = shape index + 1, as the suite), the
+eigenvalues with eval_tool shapedna -k 100 (cleaned, unit area: the product's LB spectrum);
+both are cached in --work. Writes OUT/spectral_study.json and prints the table.
+"""
+import argparse
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import suite  # noqa: E402
+
+KS = [20, 30, 40, 50, 60, 70, 80, 90]
+BETAS = [1.0, 0.5, 0.25, 0.0]
+RANKS = [0, 1, 2, 3, 4]  # 0 = set A (the suite's queries), 1..4 = set B
+
+
+def spectral(a, b, K, beta):
+    r = np.log(a[:K] / b[:K])
+    m = r.mean()
+    return float(np.sqrt(np.mean((r - m) ** 2) + beta * m * m))
+
+
+def shapedna(a, b):
+    return suite.cosine_distance(a[:30], b[:30])
+
+
+def eigenvalues(tool, files, cache_path, env):
+    cache = {}
+    if os.path.exists(cache_path):
+        with open(cache_path) as f:
+            cache = json.load(f)
+    todo = [f for f in files if f not in cache]
+    half = (len(todo) + 1) // 2
+    procs = [subprocess.Popen([tool, "shapedna", "-k", "100"] + part, env=env,
+                              stdout=subprocess.PIPE, text=True)
+             for part in (todo[:half], todo[half:]) if part]
+    for p in procs:
+        out, _ = p.communicate()
+        if p.returncode:
+            raise RuntimeError("eval_tool shapedna failed")
+        for line in out.splitlines():
+            rec = json.loads(line)
+            cache[rec["file"]] = rec["eig"]
+    with open(cache_path, "w") as f:
+        json.dump(cache, f)
+    return {f: np.array(cache[f]) for f in files}
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--build", default=os.path.join(suite.ROOT, "build"))
+    ap.add_argument("--work", default=os.path.join(suite.ROOT, "out", "spectral-study"))
+    ap.add_argument("--out", default=os.path.join(suite.ROOT, "docs", "eval"))
+    a = ap.parse_args()
+    if not os.path.isdir(suite.TOSCA):
+        print("spectral_study: skipped (no ../shared/data)")
+        return 0
+    tool = os.path.join(os.path.abspath(a.build), "bench", "eval", "eval_tool")
+    work = os.path.abspath(a.work)
+    os.makedirs(os.path.join(work, "deformed"), exist_ok=True)
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
+    s = suite.Suite.__new__(suite.Suite)  # its helpers only, no daemon
+    s.env = env
+    names, labels, files = zip(*suite.Suite.tosca_labels(s))
+    n = len(names)
+    queries, cmds = [], []  # (file, query index, deformation key, rank)
+    for cls in dict.fromkeys(labels):
+        members = [i for i, l in enumerate(labels) if l == cls]
+        for rank in RANKS:
+            q = members[rank]
+            for kind, st in suite.DEFORMATIONS:
+                out = os.path.join(work, "deformed", f"{names[q]}_{kind}_{st}.drc")
+                queries.append((out, q, f"{kind} {st}", rank))
+                if not os.path.exists(out):
+                    cmds.append([tool, "deform", files[q], "-o", out, f"--{kind}", str(st),
+                                 "--seed", str(q + 1)])
+    if any(c != 0 for c in suite.Suite.run_parallel(s, cmds)):
+        raise RuntimeError("eval_tool deform failed")
+    E = eigenvalues(tool, list(files) + [q[0] for q in queries],
+                    os.path.join(work, "eigenvalues.json"), env)
+    G = [E[f] for f in files]
+    kinds = [f"{k} {st}" for k, st in suite.DEFORMATIONS]
+
+    def score(fn):
+        D = np.array([[fn(G[i], G[j]) if i != j else 0.0 for j in range(n)] for i in range(n)])
+        k8, r = suite.knn_scores(D, list(labels)), suite.retrieval_scores(D, list(labels))
+        right = {}
+        for f, q, key, rank in queries:
+            d = [fn(E[f], G[g]) if g != q else np.inf for g in range(n)]
+            ok = labels[int(np.argmin(d))] == labels[q]
+            right.setdefault("A" if rank == 0 else "B", {}).setdefault(key, 0)
+            right["A" if rank == 0 else "B"][key] += int(ok)
+        return {"loo": k8["loo"]["accuracy"], "split_70_30": k8["split_70_30"]["accuracy"],
+                "map": r["map"], "A": right["A"], "B": right["B"]}
+
+    rows = {"shapedna": score(shapedna)}
+    for K in KS:
+        for beta in BETAS:
+            rows[f"K={K} beta={beta:g}"] = score(lambda x, y: spectral(x, y, K, beta))
+    ref = rows["shapedna"]
+    for name, r in rows.items():
+        r["chosen_by_rule"] = name != "shapedna" and r["loo"] >= 0.975 and all(
+            r["A"][k] >= ref["A"][k] for k in kinds)
+        r["B_at_least_shapedna"] = all(r["B"][k] >= ref["B"][k] for k in kinds)
+    nA = sum(1 for q in queries if q[3] == 0) // len(kinds)
+    nB = sum(1 for q in queries if q[3] > 0) // len(kinds)
+    res = {"deformations": kinds, "queries_A": nA, "queries_B": nB, "rows": rows}
+    with open(os.path.join(a.out, "spectral_study.json"), "w") as f:
+        json.dump(res, f, indent=1)
+    print(f"{'':18s} LOO   70/30  mAP  | A (/{nA}) {' '.join(k.split()[0][:3] for k in kinds)}"
+          f" | B (/{nB})")
+    for name, r in rows.items():
+        print(f"{name:18s} {r['loo']:.3f} {r['split_70_30']:.3f} {r['map']:.3f} | "
+              f"{' '.join(str(r['A'][k]) for k in kinds)} | "
+              f"{' '.join(str(r['B'][k]) for k in kinds)}"
+              f"{'  rule' if r['chosen_by_rule'] else ''}"
+              f"{'  B>=ShapeDNA' if r['B_at_least_shapedna'] else ''}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
