@@ -20,8 +20,8 @@
  *   tip search (default: when the map's confidence is below ext_below; sm_extremity.h):
  *     the tips of both shapes (head, hands, feet, tail) are found from the average geodesic
  *     distance; each of the ext_hypotheses cheapest tip assignments becomes the landmarks
- *     of a full match, and of those maps and the first one the most continuous and least
- *     distorted is kept (mirrored maps penalized).
+ *     of a full match, and of those maps and the first one the most continuous, least
+ *     distorted and best turn-keeping is kept (sm_map_turns: mirrors reverse turns).
  *     The descriptor start is right on near-isometric pairs and wrong, with a low
  *     confidence, between species (gorilla -> human); the tips put such a pair in the
  *     right basin. Costs one match per hypothesis, so only doubtful maps pay for it;
