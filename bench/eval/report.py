@@ -174,6 +174,29 @@ def section_classify(out, md):
         md.append(confusion(cl["configs"][DEFAULT]["classes_8"]["loo"]))
     md.append("\n![distance matrices ordered by class](eval/classify_heatmaps.png)\n")
     section_spectral_study(out, md)
+    section_query_scale(out, md)
+
+
+def section_query_scale(out, md):
+    q = load(out, "query_scale.json")
+    if not q:
+        return
+    md.append(f"**QUERY at scale** (`bench/eval/query_scale.py`): {q['gallery']} stored shapes "
+              "(the 40 above and 12 deformed copies of each by eval_tool deform), top-10 "
+              f"queries through the daemon with {q['threads']} workers, latency = wall time of "
+              "`shapematch query` (client included), every shape already in the daemon's "
+              "cache. DEFAULT ranks every candidate by the spectral term, which is the shipped "
+              "distance, so it runs no match; FULL matches every candidate (the exhaustive "
+              "answer).\n")
+    rows = [[m, r["queries"], r["p50_s"], r["p90_s"], r["max_s"]] for m, r in q["modes"].items()]
+    md.append(table(["mode", "queries", "p50 (s)", "p90 (s)", "max (s)"], rows))
+    lines = []
+    for key, text in (("top1_default_eq_full", "DEFAULT's top-1 = FULL's top-1"),
+                      ("top1_default_eq_spectral", "DEFAULT's top-1 = SPECTRAL's top-1"),
+                      ("top1_same_class", "DEFAULT's top-1 of the query's class")):
+        k, n = q[key]
+        lines.append(f"- {text}: {k}/{n}")
+    md.append("\n" + "\n".join(lines) + "\n")
 
 
 def section_spectral_study(out, md):
