@@ -251,10 +251,118 @@ static void pair_free(sm_job *j, pair_ctx *c) {
   free(c->init);
 }
 
+/* The two shapes of a pair are prepared at once when neither is in the memory cache: a
+ * cold MATCH of two new shapes would otherwise take the sum of two preparations. y's
+ * acquire becomes a job on the pool (side_acq), which an idle worker takes while this one
+ * acquires x; whoever comes first claims it, so when no worker has taken it by the time x
+ * is ready this worker runs it itself: the pair never waits on a busy pool, and the pool's
+ * size still bounds the preparations running at once. Single-flight is the store's, as
+ * for any acquire; errors name x before y as when they ran in turn (y's is reported only
+ * when x succeeded; when x fails, y is cancelled if it is running, never started if not).
+ * The job and the request share the struct (refs); a job that finds it claimed by the
+ * request's worker only drops its reference and touches nothing of the request, which
+ * may be gone by then. */
+typedef struct side_acq {
+  sm_pool_job base; /* first member */
+  pthread_mutex_t mu;
+  pthread_cond_t cv;
+  int state; /* SIDE_QUEUED, SIDE_RUNNING, SIDE_DONE */
+  int refs;
+  sm_job uj; /* the unit's context: own deadline flag, parent = the request */
+  const uint8_t *id;
+  const sm_store_key *key;
+  sm_prepared *p;
+  sm_store_prep_info info;
+  int rc;
+  result r;
+} side_acq;
+
+enum { SIDE_QUEUED, SIDE_RUNNING, SIDE_DONE };
+
+static void unit_job(sm_job *uj, sm_job *parent);
+
+static void side_unref(side_acq *a) {
+  pthread_mutex_lock(&a->mu);
+  int last = --a->refs == 0;
+  pthread_mutex_unlock(&a->mu);
+  if (!last) return;
+  pthread_mutex_destroy(&a->mu);
+  pthread_cond_destroy(&a->cv);
+  free(a);
+}
+
+/* Claims a queued side acquire (1) or not (0: taken by the other side, or skipped). */
+static int side_claim(side_acq *a) {
+  pthread_mutex_lock(&a->mu);
+  int mine = a->state == SIDE_QUEUED;
+  if (mine) a->state = SIDE_RUNNING;
+  pthread_mutex_unlock(&a->mu);
+  return mine;
+}
+
+/* Runs a claimed side acquire (or, skip, only marks it done) and wakes the request. */
+static void side_run(side_acq *a, int skip) {
+  if (!skip) a->rc = acquire(&a->uj, a->id, a->key, "y", 1, &a->p, &a->info, &a->r);
+  pthread_mutex_lock(&a->mu);
+  a->state = SIDE_DONE;
+  pthread_cond_broadcast(&a->cv);
+  pthread_mutex_unlock(&a->mu);
+}
+
+static void side_job(sm_pool_job *pj) {
+  side_acq *a = (side_acq *)pj;
+  if (side_claim(a)) side_run(a, 0);
+  side_unref(a);
+}
+
+/* y's acquire queued on the pool, or NULL (then the caller acquires y itself). */
+static side_acq *side_start(sm_job *j, const uint8_t *y, const sm_store_key *key) {
+  side_acq *a = calloc(1, sizeof *a);
+  if (!a) return NULL;
+  if (pthread_mutex_init(&a->mu, NULL)) {
+    free(a);
+    return NULL;
+  }
+  if (pthread_cond_init(&a->cv, NULL)) {
+    pthread_mutex_destroy(&a->mu);
+    free(a);
+    return NULL;
+  }
+  a->base.run = side_job;
+  a->state = SIDE_QUEUED;
+  a->refs = 2; /* the request and the queued job */
+  unit_job(&a->uj, j);
+  a->id = y;
+  a->key = key;
+  /* Forced like a fan-out runner: the request was admitted; this is its bounded part. */
+  if (sm_pool_submit_force(j->srv->pool, &a->base)) {
+    a->refs = 1;
+    side_unref(a);
+    return NULL;
+  }
+  return a;
+}
+
 static int acquire_pair(sm_job *j, const uint8_t *x, const uint8_t *y, const sm_store_key *key,
                         pair_ctx *c, result *r) {
-  if (acquire(j, x, key, "x", 0, &c->px, &c->ix, r)) return -1;
-  return acquire(j, y, key, "y", 1, &c->py, &c->iy, r);
+  sm_store *st = j->srv->store;
+  side_acq *a = NULL;
+  if (memcmp(x, y, 32) && sm_pool_threads(j->srv->pool) > 1 && !sm_store_cached(st, x, key) &&
+      !sm_store_cached(st, y, key))
+    a = side_start(j, y, key);
+  int fx = acquire(j, x, key, "x", 0, &c->px, &c->ix, r);
+  if (!a) return fx ? -1 : acquire(j, y, key, "y", 1, &c->py, &c->iy, r);
+  if (fx) atomic_store(&a->uj.cancel, 1); /* the pair has failed: y is not needed */
+  if (side_claim(a)) side_run(a, fx);
+  pthread_mutex_lock(&a->mu);
+  while (a->state != SIDE_DONE) pthread_cond_wait(&a->cv, &a->mu);
+  pthread_mutex_unlock(&a->mu);
+  c->py = a->p; /* released by pair_free, whatever happened to x */
+  c->iy = a->info;
+  int fy = !fx && a->rc;
+  if (fy) *r = a->r;
+  side_unref(a);
+  return fx || fy ? -1 : 0;
 }
 
 static uint64_t prep_us(const sm_store_prep_info *i) {

@@ -52,6 +52,7 @@ uint32_t sm_met_stats(struct sm_store *st, sm_proto_stat *out, uint32_t cap) {
   put(out, cap, &n, "cache_evictions", ss.evictions);
   put(out, cap, &n, "singleflight_waits", ss.singleflight_waits);
   put(out, cap, &n, "prepares", ss.prepares);
+  put(out, cap, &n, "prepares_concurrent_max", ss.prepares_concurrent_max);
   put(out, cap, &n, "bases_computed", ss.bases_computed);
   put(out, cap, &n, "bases_loaded", ss.bases_loaded);
   put(out, cap, &n, "bases_corrupt", ss.bases_corrupt);

@@ -72,6 +72,7 @@ struct sm_store {
   sm_store_key def;
   uint32_t max_components;
   uint64_t budget;
+  uint64_t computing; /* preparations running now (under mu): prepares_concurrent_max */
   entry *buckets[NBUCKETS];
   variant *lru_head, *lru_tail;
   sm_store_stats s; /* counters; shapes/shapes_bytes/bases_cached/cache_bytes kept live */
@@ -1043,6 +1044,8 @@ int sm_store_acquire(sm_store *st, const uint8_t id[32], const sm_store_key *key
     e->pins++;
     st->s.cache_misses++;
     st->s.prepares++;
+    if (++st->computing > st->s.prepares_concurrent_max)
+      st->s.prepares_concurrent_max = st->computing;
     char hex[65];
     memcpy(hex, e->hex, 65);
     pthread_mutex_unlock(&st->mu);
@@ -1053,6 +1056,7 @@ int sm_store_acquire(sm_store *st, const uint8_t id[32], const sm_store_key *key
     info->waited = w;
 
     pthread_mutex_lock(&st->mu);
+    st->computing--;
     e->pins--;
     var_unlink(e, v);
     if (rc == SM_STORE_ECORRUPT) {
@@ -1091,6 +1095,15 @@ int sm_store_acquire(sm_store *st, const uint8_t id[32], const sm_store_key *key
     pthread_mutex_unlock(&st->mu);
     return rc;
   }
+}
+
+int sm_store_cached(sm_store *st, const uint8_t id[32], const sm_store_key *key) {
+  pthread_mutex_lock(&st->mu);
+  entry *e = find(st, id);
+  variant *v = e ? find_var(e, key) : NULL;
+  int ready = v && v->state == V_READY;
+  pthread_mutex_unlock(&st->mu);
+  return ready;
 }
 
 void sm_store_release(sm_store *st, sm_prepared *p) {

@@ -100,6 +100,8 @@ typedef struct sm_store_stats {
   uint64_t cache_hits, cache_misses, evictions, singleflight_waits, prepares;
   uint64_t bases_computed, bases_loaded, bases_corrupt, shapes_corrupt;
   uint64_t shapes_healed; /* damaged files rewritten by a PUT of their bytes */
+  uint64_t prepares_concurrent_max; /* the most preparations running at once (a cold
+                                       MATCH prepares its two shapes together) */
 } sm_store_stats;
 
 /* Opens (creating) dir, scans shapes/. lim bounds decoding. default_key: what
@@ -134,6 +136,9 @@ int sm_store_drop(sm_store *st, const uint8_t id[32]);
 int sm_store_acquire(sm_store *st, const uint8_t id[32], const sm_store_key *key,
                      int (*cancel)(void *), void *ud, sm_prepared **out,
                      sm_store_prep_info *info, sm_error *err);
+/* 1 when (id, key) is prepared in the memory cache now (an acquire would not compute or
+ * load anything), else 0. A hint: the answer may change right after. */
+int sm_store_cached(sm_store *st, const uint8_t id[32], const sm_store_key *key);
 void sm_store_release(sm_store *st, sm_prepared *p);
 const sm_shape *sm_prepared_shape(const sm_prepared *p);
 

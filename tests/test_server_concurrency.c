@@ -12,6 +12,9 @@
  *      UNAUTHORIZED, right -> accepted); --cache-mb 1 (cache_evictions > 0, requests still
  *      right, bases reloaded from disk);
  *   4. each daemon still answers afterwards and exits 0 on SIGTERM;
+ *   6. a cold pair (daemon P, --threads 2): one MATCH of two new shapes prepares them at
+ *      once (STATS prepares_concurrent_max 2, each computed once); a MATCH whose x is not
+ *      stored and whose y is new still names x (NOT_FOUND, detail 0);
  *   5. the buffer budget and hostile peers (daemon I, --buffer-budget-mb 16 --max-conns 40):
  *      non-reading PING pipeliners stop being read (STATS read_pauses) while the daemon's
  *      buffered bytes stay under the budget and a good client's PING is answered, then
@@ -241,6 +244,19 @@ static int call(int fd, uint32_t rid, const req *r, int verify) {
   if (f.h.request_id != rid) st = -1;
   if (st == 0 && verify && verify_ok(r, &f, rid)) st = -1;
   if (st > 0 && st != SM_ST_BUSY) print_error(kind_name(r->kind), &f);
+  frame_free(&f);
+  return st;
+}
+
+/* One request answered by an error: its status (-1 if none) and detail. */
+static int call_err(int fd, uint32_t rid, const req *r, uint32_t *detail) {
+  if (send_req(fd, rid, r)) return -1;
+  frame f;
+  if (recv_frame(fd, &f)) return -1;
+  int st = f.h.request_id == rid ? f.h.status : -1;
+  sm_proto_error e;
+  if (st > 0 && !sm_proto_dec_error(f.body, f.body_len, &e)) *detail = e.detail;
+  else st = -1;
   frame_free(&f);
   return st;
 }
@@ -975,6 +991,52 @@ int main(void) {
     CHECK(call(fd, 2, &pz, 1) == 0);
   }
   close(fd);
+  CHECK(stop_daemon() == 0);
+
+  /* ---------------- daemon P: --threads 2, a cold pair prepared at once */
+  g_port = start_daemon("--threads 2");
+  REQUIRE(g_port > 0);
+  {
+    /* New shapes (nothing on disk), large enough that each preparation lasts long
+     * enough for the idle worker to take the other one. */
+    shape a, b, ghost;
+    double sa[3] = {1, 0.8, 0.9}, sb[3] = {0.9, 1.1, 0.8};
+    make_blob(&a, 4, 21, sa);
+    make_blob(&b, 4, 22, sb);
+    ghost = g_x;
+    ghost.id[0] ^= 0x5a; /* an id never stored */
+    fd = open_client();
+    REQUIRE(fd >= 0);
+    CHECK(put(fd, &a) == SM_ST_OK);
+    CHECK(put(fd, &b) == SM_ST_OK);
+    uint64_t c0 = stat_of(fd, "bases_computed");
+    uint32_t detail = 99;
+    req bad = {R_DIST, &ghost, &a, 0, 0};
+    CHECK(call_err(fd, 1, &bad, &detail) == SM_ST_NOT_FOUND);
+    CHECK_MSG(detail == 0, "missing x reported with detail %u", detail);
+    req m = {R_DIST, &a, &b, 0, 0};
+    CHECK(call(fd, 2, &m, 0) == SM_ST_OK);
+    uint64_t c1 = stat_of(fd, "bases_computed"), conc = stat_of(fd, "prepares_concurrent_max");
+    fprintf(stderr, "cold pair: bases_computed %llu -> %llu, prepares_concurrent_max %llu\n",
+            (unsigned long long)c0, (unsigned long long)c1, (unsigned long long)conc);
+    CHECK(c1 == c0 + 4); /* each basis once: what a's cancelled run finished is on disk */
+    CHECK(conc == 2);
+    /* Dropped: the QUERY checks below count every stored shape of the data dir. */
+    for (int i = 0; i < 2; i++) {
+      sm_proto_header h = req_hdr(10 + (uint32_t)i);
+      sm_proto_id_req q;
+      memcpy(q.id, (i ? &b : &a)->id, 32);
+      uint8_t buf[128];
+      ptrdiff_t n = sm_proto_enc_id_req(buf, sizeof buf, &h, SM_OP_DROP_SHAPE, &q);
+      frame f;
+      REQUIRE(n > 0 && send_all(fd, buf, (size_t)n) == 0 && recv_frame(fd, &f) == 0);
+      CHECK(f.h.status == SM_ST_OK);
+      frame_free(&f);
+    }
+    close(fd);
+    sm_mesh_destroy(a.mesh), free(a.drc);
+    sm_mesh_destroy(b.mesh), free(b.drc);
+  }
   CHECK(stop_daemon() == 0);
 
   /* ---------------- daemon B: --queue 1 --threads 1, 4 clients flood DISTANCE */
