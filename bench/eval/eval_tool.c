@@ -8,10 +8,15 @@
  *       to FRAC of the vertices; normal noise of S mean edge lengths.
  *   eval_tool shapedna FILE... [-k K]
  *       the ShapeDNA baseline's signature: the first K (default 30) non-zero LB eigenvalues
- *       of the shape cleaned and scaled to unit area; one JSON line per file.
+ *       of the shape cleaned and scaled to unit area; one JSON line per file. With --hks,
+ *       each line also has "volume" (enclosed, at unit area) and "hksq": at each of the 13
+ *       times t = 10^(-3 + j/4), j = 0..12, the area-weighted quantiles 0.05, 0.10, ..., 0.95
+ *       of log h(v, t), h the heat kernel signature sum_i exp(-t lambda_i) phi_i(v)^2 over
+ *       the K + 1 basis functions (the per-shape descriptor spectral_study.py compares).
  */
 #define _POSIX_C_SOURCE 200809L
 #include <cblas.h>
+#include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -72,7 +77,55 @@ static int cmd_deform(int argc, char **argv) {
   return rc ? fail(in, &err) : 0;
 }
 
-static int shapedna_one(const char *path, int k, sm_error *err) {
+#define HKS_TIMES 13
+#define HKS_QUANTILES 19
+
+typedef struct wv {
+  double v, w;
+} wv;
+
+static int cmp_wv(const void *a, const void *b) {
+  double x = ((const wv *)a)->v, y = ((const wv *)b)->v;
+  return (x > y) - (x < y);
+}
+
+/* Prints , "volume": V, "hksq": [[...] x HKS_TIMES] for a unit-area mesh and its basis. */
+static int print_hks(const sm_mesh *m, const sm_basis *b) {
+  double vol = 0;
+  for (int32_t f = 0; f < m->nf; f++) {
+    const double *p = m->V + 3 * m->F[3 * f], *q = m->V + 3 * m->F[3 * f + 1],
+                 *r = m->V + 3 * m->F[3 * f + 2];
+    vol += (p[0] * (q[1] * r[2] - q[2] * r[1]) - p[1] * (q[0] * r[2] - q[2] * r[0]) +
+            p[2] * (q[0] * r[1] - q[1] * r[0])) / 6;
+  }
+  wv *h = malloc((size_t)b->n * sizeof *h);
+  if (!h) return SM_ENOMEM;
+  printf(", \"volume\": %.10g, \"hksq\": [", fabs(vol));
+  for (int j = 0; j < HKS_TIMES; j++) {
+    double t = pow(10.0, -3.0 + 0.25 * j), area = 0;
+    for (int32_t v = 0; v < b->n; v++) h[v].v = 0, h[v].w = b->mass[v], area += b->mass[v];
+    for (int i = 0; i < b->k; i++) {
+      double e = exp(-t * fmax(b->evals[i], 0.0));
+      const double *phi = b->phi + (size_t)i * b->n;
+      for (int32_t v = 0; v < b->n; v++) h[v].v += e * phi[v] * phi[v];
+    }
+    for (int32_t v = 0; v < b->n; v++) h[v].v = log(fmax(h[v].v, 1e-300));
+    qsort(h, (size_t)b->n, sizeof *h, cmp_wv);
+    printf("%s[", j ? ", " : "");
+    double acc = 0;
+    int32_t v = 0;
+    for (int q = 1; q <= HKS_QUANTILES; q++) { /* lower quantile of the area measure */
+      while (v < b->n - 1 && acc + h[v].w < 0.05 * q * area) acc += h[v++].w;
+      printf("%s%.8g", q > 1 ? ", " : "", h[v].v);
+    }
+    printf("]");
+  }
+  printf("]");
+  free(h);
+  return SM_OK;
+}
+
+static int shapedna_one(const char *path, int k, int hks, sm_error *err) {
   sm_mesh *raw = NULL, *m = NULL;
   sm_basis *b = NULL;
   int rc = sm_mesh_read_file(path, NULL, &raw, err);
@@ -89,21 +142,26 @@ static int shapedna_one(const char *path, int k, sm_error *err) {
     int skip = b->n_components > 0 ? b->n_components : 1;
     for (int i = skip; i < b->k && i < skip + k; i++)
       printf("%s%.10g", i > skip ? ", " : "", b->evals[i]);
-    printf("]}\n");
+    printf("]");
+    if (hks && print_hks(m, b)) rc = sm_error_set(err, SM_ENOMEM, "out of memory");
+    printf("}\n");
   }
   sm_basis_destroy(b), sm_mesh_destroy(m), sm_mesh_destroy(raw);
   return rc;
 }
 
 static int cmd_shapedna(int argc, char **argv) {
-  int k = 30, failed = 0;
+  int k = 30, failed = 0, hks = 0;
+  for (int i = 0; i < argc; i++)
+    if (!strcmp(argv[i], "--hks")) hks = 1;
   for (int i = 0; i < argc; i++) {
     if (!strcmp(argv[i], "-k") && i + 1 < argc) {
       k = atoi(argv[++i]);
       continue;
     }
+    if (!strcmp(argv[i], "--hks")) continue;
     sm_error err = {0};
-    if (shapedna_one(argv[i], k, &err)) failed = fail(argv[i], &err);
+    if (shapedna_one(argv[i], k, hks, &err)) failed = fail(argv[i], &err);
   }
   return failed;
 }
@@ -113,6 +171,6 @@ int main(int argc, char **argv) {
   if (argc >= 2 && !strcmp(argv[1], "deform")) return cmd_deform(argc - 2, argv + 2);
   if (argc >= 2 && !strcmp(argv[1], "shapedna")) return cmd_shapedna(argc - 2, argv + 2);
   fprintf(stderr, "usage: eval_tool deform IN -o OUT.drc --stretch|--bulge|--dent|--decimate|"
-                  "--noise X [--seed N]\n       eval_tool shapedna FILE... [-k K]\n");
+                  "--noise X [--seed N]\n       eval_tool shapedna FILE... [-k K] [--hks]\n");
   return 2;
 }
