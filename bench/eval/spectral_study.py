@@ -206,7 +206,6 @@ def main():
         raise RuntimeError("eval_tool deform failed")
     E = eigenvalues(tool, list(files) + [q[0] for q in queries],
                     os.path.join(work, "eigenvalues.json"), env)
-    G = [E[f] for f in files]
     kinds = [f"{k} {st}" for k, st in suite.DEFORMATIONS]
 
     def score(fn, by_file=False):
