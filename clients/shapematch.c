@@ -108,7 +108,10 @@ static int usage(FILE *f) {
           "  between two answers; default: none). A request queued behind other work on the\n"
           "  server is waited for as long as the server answers a PING sent after\n"
           "  --io-timeout S (default 30) of silence; BUSY answers are retried after the\n"
-          "  server's hint\n",
+          "  server's hint. When the connection is lost (the daemon died, a front cut it,\n"
+          "  the daemon shut down), the command connects again (--reconnect N attempts,\n"
+          "  default 5, waits from 0.1 s doubling; 0: never) and sends again the requests\n"
+          "  whose answers had not come; a request cut 3 times fails\n",
           SM_SHELL_DEFAULT_ETA);
   return 2;
 }
@@ -628,6 +631,7 @@ static void on_sigint(int sig) {
 
 /* Client time limits from --timeout / --io-timeout (seconds; 0 = the library default). */
 static int g_timeout_ms = 0, g_io_timeout_ms = 0;
+static int g_reconnect = 5; /* --reconnect: connection attempts after a lost connection */
 
 static int parse_secs(const char *v, int *ms) {
   char *e;
@@ -638,7 +642,7 @@ static int parse_secs(const char *v, int *ms) {
   return 0;
 }
 
-/* Removes "--server ADDR", "--local", "--timeout S" and "--io-timeout S" from argv
+/* Removes "--server ADDR", "--local", "--timeout S", "--io-timeout S" and "--reconnect N" from argv
  * (compacting it); falls back to $SHAPEMATCH_SERVER. *addr is NULL when no server is
  * named or --local was given. Returns -1 when a flag lacks its value. */
 static int take_server(int *argc, char **argv, const char **addr) {
@@ -652,6 +656,11 @@ static int take_server(int *argc, char **argv, const char **addr) {
       if (i + 1 >= *argc || parse_secs(argv[++i], &g_timeout_ms)) return -1;
     } else if (!strcmp(argv[i], "--io-timeout")) {
       if (i + 1 >= *argc || parse_secs(argv[++i], &g_io_timeout_ms) || !g_io_timeout_ms) return -1;
+    } else if (!strcmp(argv[i], "--reconnect")) {
+      char *end;
+      long v = i + 1 < *argc ? strtol(argv[++i], &end, 10) : -1;
+      if (v < 0 || v > 100 || *end) return -1;
+      g_reconnect = (int)v;
     } else if (!strcmp(argv[i], "--local")) local = 1;
     else argv[n++] = argv[i];
   }
@@ -684,10 +693,20 @@ static int open_client(const char *addr, const uint8_t *affinity, sm_client **c)
   o.affinity = affinity;
   o.compute_timeout_ms = g_timeout_ms;
   if (g_io_timeout_ms) o.io_timeout_ms = g_io_timeout_ms;
+  o.reconnect_tries = g_reconnect;
   o.stop = &g_stop;
   signal(SIGINT, on_sigint);
   if (sm_client_connect(addr, &o, c, &e)) return client_fail("connect", &e);
   return 0;
+}
+
+/* Closes; says on stderr when requests went over more than one connection, so that a
+ * user (or a test) can tell a batch that survived a lost daemon. */
+static void close_client(sm_client *c) {
+  unsigned n = sm_client_reconnects(c);
+  if (n) fprintf(stderr, "shapematch: the connection was lost and made again %u time%s; the requests it "
+                         "cut were sent again\n", n, n == 1 ? "" : "s");
+  sm_client_close(c);
 }
 
 /* A shape named on the command line: a mesh file, or the hex id of a stored shape. */
@@ -940,7 +959,7 @@ static int cmd_put(int argc, char **argv, const char *addr) {
       break;
     }
   }
-  sm_client_close(c);
+  close_client(c);
   strv_free(&files);
   return rc;
 }
@@ -1035,7 +1054,7 @@ static int remote_match(const char *addr, match_args *m) {
   sm_client_match_result_free(&r);
   free(lm);
   free(init);
-  sm_client_close(c);
+  close_client(c);
   return rc ? 1 : 0;
 }
 
@@ -1068,7 +1087,7 @@ static int remote_distance(const char *addr, match_args *m) {
   }
   free(lm);
   free(init);
-  sm_client_close(c);
+  close_client(c);
   return rc ? 1 : 0;
 }
 
@@ -1107,7 +1126,7 @@ static int cmd_query(int argc, char **argv, const char *addr) {
   if (!rc && json) printf("%s]\n", n ? "" : "[");
   if (!rc) fprintf(stderr, "%u hits; %u stored shapes considered\n", n, considered);
   free(h);
-  sm_client_close(c);
+  close_client(c);
   return rc;
 }
 
@@ -1138,7 +1157,7 @@ static int cmd_stats(int argc, char **argv, const char *addr, int ping) {
       free(st);
     }
   }
-  sm_client_close(c);
+  close_client(c);
   return rc;
 }
 
@@ -1434,7 +1453,7 @@ static int cmd_batch(int argc, char **argv, const char *addr) {
   }
   if (!rc && b.n_done < n) fprintf(stderr, "shapematch batch: %zu of %zu items not done\n", n - b.n_done, n);
   int fail = rc || b.n_failed || b.n_done < n;
-  sm_client_close(c);
+  close_client(c);
   strv_free(&b.failed);
   for (size_t j = 0; refs && j < names.n; j++) ref_free(&refs[j]);
   free(refs);

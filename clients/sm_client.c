@@ -10,6 +10,12 @@
  *   deadline (monotonic clock), in slices of 100 ms when a stop flag is watched.
  *   Sending also reads: a daemon that stops reading a connection whose answers are not
  *   collected (backpressure) would otherwise deadlock against a client blocked in send.
+ *   Lost connections: the places that see a connection die of something a new connection
+ *   may not see (EOF, reset, an unanswered probe, a GOAWAY that invites a retry) set
+ *   c->lost; a graceful GOAWAY sets c->goaway. may_relink() says whether the caller may
+ *   then connect again (relink()) and resend; call() does that for one request, and
+ *   sm_client_batch for the items it has not received answers to. The resent request gets
+ *   a new id: the old connection's ids mean nothing to the new daemon.
  */
 #include "sm_client.h"
 
@@ -51,6 +57,11 @@ struct sm_client {
   size_t n_cancels, cap_cancels;
   uint32_t probe_rid; /* liveness PING in flight (0 = none) */
   int64_t last_rx_ms; /* when the last frame arrived (or the last wait began) */
+  char *addr;         /* sm_client_connect's address (NULL: made from an fd) */
+  int lost;           /* the connection died in a way a new one may not (file comment) */
+  uint32_t retry_hint_ms; /* the server's wait hint that came with the loss */
+  unsigned reconnects;
+  uint32_t rng;       /* backoff jitter */
 };
 
 /* ---- errors ---- */
@@ -102,6 +113,7 @@ void sm_client_opts_default(sm_client_opts *o) {
   memset(o, 0, sizeof *o);
   o->connect_timeout_ms = 10000;
   o->io_timeout_ms = 30000;
+  o->reconnect_backoff_ms = 100;
 }
 
 int sm_client_parse_addr(const char *addr, char *host, size_t host_cap, uint16_t *port,
@@ -224,8 +236,11 @@ static int send_all(sm_client *c, const uint8_t *buf, size_t len, sm_client_erro
     if (ev & (POLLOUT | POLLERR | POLLHUP)) {
       ssize_t w = send(c->fd, buf, len, MSG_NOSIGNAL);
       if (w < 0 && (errno == EINTR || errno == EAGAIN || errno == EWOULDBLOCK)) continue;
-      if (w < 0) return broken(c, seterr(err, errno == EPIPE || errno == ECONNRESET ? SM_CLIENT_ECLOSED : SM_CLIENT_EIO,
-                                         "send: %s", strerror(errno)));
+      if (w < 0) {
+        c->lost = 1;
+        return broken(c, seterr(err, errno == EPIPE || errno == ECONNRESET ? SM_CLIENT_ECLOSED : SM_CLIENT_EIO,
+                                "send: %s", strerror(errno)));
+      }
       buf += w;
       len -= (size_t)w;
     }
@@ -254,6 +269,7 @@ static int next_frame(sm_client *c, int64_t deadline, int watch_stop, sm_proto_f
     if (ev == SM_CLIENT_ETIMEOUT || ev == SM_CLIENT_ECANCELED) return ev; /* caller decides */
     if (ev < 0) return broken(c, ev);
     ptrdiff_t n = read_some(c, err);
+    if (n == SM_CLIENT_ECLOSED || n == SM_CLIENT_EIO) c->lost = 1;
     if (n < 0) return broken(c, (int)n);
   }
 }
@@ -270,7 +286,16 @@ static int status_error(sm_client *c, const sm_proto_frame *f, sm_client_error *
     err->detail = bad ? 0 : e.detail;
     err->retry_after_ms = bad ? 0 : e.retry_after_ms;
   }
-  if (sm_proto_status_is_fatal(f->h.status)) broken(c, 0);
+  if (sm_proto_status_is_fatal(f->h.status)) {
+    /* these close a connection for reasons of the moment (idleness, load), not for what
+     * the client sent: a new connection may do better */
+    uint16_t st = f->h.status;
+    if (st == SM_ST_TIMEOUT || st == SM_ST_TOO_MANY_CONNECTIONS || st == SM_ST_OVERLOADED) {
+      c->lost = 1;
+      c->retry_hint_ms = bad ? 0 : e.retry_after_ms;
+    }
+    broken(c, 0);
+  }
   return SM_CLIENT_ESTATUS;
 }
 
@@ -279,7 +304,9 @@ static int status_error(sm_client *c, const sm_proto_frame *f, sm_client_error *
 static int side_frame(sm_client *c, const sm_proto_frame *f, sm_client_error *err) {
   if (f->h.opcode == SM_OP_GOAWAY) {
     if (f->h.status == SM_ST_OK) {
+      sm_proto_error e;
       c->goaway = 1;
+      c->retry_hint_ms = sm_proto_dec_error(f->body, f->body_len, &e) ? 0 : e.retry_after_ms;
       return 1;
     }
     return status_error(c, f, err);
@@ -369,9 +396,11 @@ static int next_frame_live(sm_client *c, int64_t deadline, int watch_stop, sm_pr
     if (deadline >= 0 && now_ms() >= deadline)
       return seterr(err, SM_CLIENT_ETIMEOUT, "no answer from the server within the time limit "
                     "(%d ms)", c->o.compute_timeout_ms);
-    if (c->probe_rid) /* the connection is dead: nothing will come */
+    if (c->probe_rid) { /* the connection is dead: nothing will come */
+      c->lost = 1;
       return broken(c, seterr(err, SM_CLIENT_ETIMEOUT, "the server stopped answering (no answer "
                               "to a PING within %d ms)", io));
+    }
     if (c->goaway) { /* draining: it answers or closes within its drain time */
       c->last_rx_ms = now_ms();
       continue;
@@ -386,7 +415,8 @@ static int next_frame_live(sm_client *c, int64_t deadline, int watch_stop, sm_pr
 }
 
 /* One request, one answer: *f is the OK response body (view valid until the next call). */
-static int call(sm_client *c, uint8_t op, const void *m, sm_proto_frame *f, sm_client_error *err) {
+static int call_once(sm_client *c, uint8_t op, const void *m, sm_proto_frame *f,
+                     sm_client_error *err) {
   uint32_t rid;
   clear_err(err);
   int rc = send_req(c, op, m, &rid, err);
@@ -410,6 +440,84 @@ static int call(sm_client *c, uint8_t op, const void *m, sm_proto_frame *f, sm_c
       return broken(c, seterr(err, SM_CLIENT_EPROTO, "%s answer to a %s request",
                               sm_proto_op_name(f->h.opcode), sm_proto_op_name(op)));
     return 0;
+  }
+}
+
+/* 1 when the connection was lost in a way a new connection may cure, or is open but
+ * draining (graceful GOAWAY), and the options allow connecting again. A connection the
+ * client closed itself (a compute_timeout_ms, a protocol violation) is neither. */
+static int may_relink(const sm_client *c) {
+  return c->addr && c->o.reconnect_tries > 0 && (c->lost || (c->goaway && c->open)) &&
+         !(c->o.stop && *c->o.stop);
+}
+
+/* Sleeps ms milliseconds in slices that watch the stop flag: 0, or ECANCELED. */
+static int nap(const sm_client *c, int64_t ms, sm_client_error *err) {
+  int64_t end = now_ms() + ms;
+  for (int64_t left = ms; left > 0; left = end - now_ms()) {
+    if (c->o.stop && *c->o.stop) return seterr(err, SM_CLIENT_ECANCELED, "stopped by the caller");
+    int64_t d = left > 100 ? 100 : left;
+    struct timespec ts = {(time_t)(d / 1000), (long)(d % 1000) * 1000000L};
+    nanosleep(&ts, NULL);
+  }
+  return 0;
+}
+
+/* After a loss (may_relink): up to reconnect_tries connection attempts, the first after the
+ * server's hint (if any), then waits doubling from reconnect_backoff_ms, at most 2 s, each
+ * drawn in [w/2, w] so that many clients cut at once do not come back at once. err holds
+ * the loss on entry; on failure it says both what was lost and why connecting failed. */
+static int relink(sm_client *c, sm_client_error *err) {
+  char why[sizeof err->msg];
+  snprintf(why, sizeof why, "%s", err && err->msg[0] ? err->msg : "connection lost");
+  int64_t w = c->o.reconnect_backoff_ms > 0 ? c->o.reconnect_backoff_ms : 100;
+  int64_t hint = c->retry_hint_ms;
+  sm_client_error e;
+  memset(&e, 0, sizeof e);
+  for (int t = 0; t < c->o.reconnect_tries; t++) {
+    int64_t d = 0;
+    if (t > 0) {
+      c->rng ^= c->rng << 13, c->rng ^= c->rng >> 17, c->rng ^= c->rng << 5;
+      d = w / 2 + (int64_t)(c->rng % (uint32_t)(w / 2 + 1));
+      w = w * 2 > 2000 ? 2000 : w * 2;
+    }
+    if (d < hint) d = hint > 2000 ? 2000 : hint;
+    if (nap(c, d, err)) return SM_CLIENT_ECANCELED;
+    if (!sm_client_reconnect(c, &e)) return 0;
+    hint = e.retry_after_ms; /* TOO_MANY_CONNECTIONS says how long to wait */
+  }
+  c->lost = 0; /* this loss was handled: a later call fails until the caller reconnects */
+  int code = e.code ? e.code : SM_CLIENT_ECONNECT;
+  return seterr(err, code, "%.150s; connecting again failed %d times, the last: %.150s", why,
+                c->o.reconnect_tries, e.msg);
+}
+
+/* call_once, and for an idempotent request whose connection was lost before its answer
+ * came (or that was refused as SHUTTING_DOWN by a draining server): connect again and
+ * resend, at most SM_CLIENT_MAX_LOSSES sends in all. */
+static int call(sm_client *c, uint8_t op, const void *m, sm_proto_frame *f, sm_client_error *err) {
+  sm_client_error local;
+  if (!err) err = &local;
+  int idem = (sm_proto_op_flags(op) & SM_OPF_IDEMPOTENT) != 0;
+  if (idem && !c->open && may_relink(c)) { /* lost by an earlier call */
+    int rc = relink(c, err);
+    if (rc) return rc;
+  }
+  for (int sends = 1;; sends++) {
+    int rc = call_once(c, op, m, f, err);
+    if (rc == SM_CLIENT_ESTATUS && err->status == SM_ST_SHUTTING_DOWN) c->goaway = 1;
+    int cut = c->lost || rc == SM_CLIENT_ECLOSED /* refused by send_req after GOAWAY */ ||
+              (rc == SM_CLIENT_ESTATUS && err->status == SM_ST_SHUTTING_DOWN);
+    if (!rc || !idem || !cut || !may_relink(c)) return rc;
+    if (sends >= SM_CLIENT_MAX_LOSSES) {
+      c->lost = 0;
+      char m0[sizeof err->msg];
+      snprintf(m0, sizeof m0, "%s", err->msg);
+      snprintf(err->msg, sizeof err->msg, "%.200s (sent %d times, the connection was lost each time)",
+               m0, sends);
+      return rc;
+    }
+    if ((rc = relink(c, err))) return rc;
   }
 }
 
@@ -455,6 +563,8 @@ int sm_client_connect_fd(int fd, const sm_client_opts *opts, sm_client **out,
   c->fd = fd;
   c->open = 1;
   c->o = *opts;
+  c->rng = (uint32_t)now_ms() ^ (uint32_t)getpid() ^ 0x9e3779b9u;
+  if (!c->rng) c->rng = 1;
   if (opts->token_len) memcpy(c->token, opts->token, opts->token_len);
   c->o.token = NULL;
   if (opts->affinity) memcpy(c->affinity, opts->affinity, SM_PROTO_ID_LEN);
@@ -517,24 +627,19 @@ static int connect_to(const struct sockaddr *sa, socklen_t len, int timeout_ms, 
   return 0;
 }
 
-int sm_client_connect(const char *addr, const sm_client_opts *opts, sm_client **out,
-                      sm_client_error *err) {
+/* A connected socket to addr (not yet HELLO'd): the fd, or a negative SM_CLIENT_E*. */
+static int open_socket(const char *addr, int connect_timeout_ms, sm_client_error *err) {
   char host[256];
   uint16_t port;
-  clear_err(err);
-  if (out) *out = NULL;
-  if (!out) return seterr(err, SM_CLIENT_EINVAL, "connect: NULL output");
   int rc = sm_client_parse_addr(addr, host, sizeof host, &port, err);
   if (rc) return rc;
-  sm_client_opts def;
-  if (!opts) sm_client_opts_default(&def), opts = &def;
   int fd = -1;
   if (!port) {
     struct sockaddr_un su;
     memset(&su, 0, sizeof su);
     su.sun_family = AF_UNIX;
     memcpy(su.sun_path, host, strlen(host) + 1);
-    rc = connect_to((struct sockaddr *)&su, sizeof su, opts->connect_timeout_ms, &fd, err);
+    rc = connect_to((struct sockaddr *)&su, sizeof su, connect_timeout_ms, &fd, err);
   } else {
     struct addrinfo hints, *res = NULL;
     memset(&hints, 0, sizeof hints);
@@ -546,7 +651,7 @@ int sm_client_connect(const char *addr, const sm_client_opts *opts, sm_client **
     if (g) return seterr(err, SM_CLIENT_EADDR, "%s: %s", host, gai_strerror(g));
     rc = SM_CLIENT_ECONNECT;
     for (struct addrinfo *ai = res; ai && rc; ai = ai->ai_next)
-      rc = connect_to(ai->ai_addr, ai->ai_addrlen, opts->connect_timeout_ms, &fd, err);
+      rc = connect_to(ai->ai_addr, ai->ai_addrlen, connect_timeout_ms, &fd, err);
     freeaddrinfo(res);
   }
   if (rc) {
@@ -557,8 +662,62 @@ int sm_client_connect(const char *addr, const sm_client_opts *opts, sm_client **
     }
     return rc;
   }
-  return sm_client_connect_fd(fd, opts, out, err);
+  return fd;
 }
+
+int sm_client_connect(const char *addr, const sm_client_opts *opts, sm_client **out,
+                      sm_client_error *err) {
+  clear_err(err);
+  if (out) *out = NULL;
+  if (!out) return seterr(err, SM_CLIENT_EINVAL, "connect: NULL output");
+  sm_client_opts def;
+  if (!opts) sm_client_opts_default(&def), opts = &def;
+  char *copy = strdup(addr ? addr : "");
+  if (!copy) return seterr(err, SM_CLIENT_ENOMEM, "address");
+  int fd = open_socket(addr, opts->connect_timeout_ms, err);
+  int rc = fd < 0 ? fd : sm_client_connect_fd(fd, opts, out, err);
+  if (rc) {
+    free(copy);
+    return rc;
+  }
+  (*out)->addr = copy;
+  return 0;
+}
+
+int sm_client_reconnect(sm_client *c, sm_client_error *err) {
+  clear_err(err);
+  if (!c) return seterr(err, SM_CLIENT_EINVAL, "reconnect: NULL client");
+  if (!c->addr) return seterr(err, SM_CLIENT_EINVAL, "reconnect: the client was made from a socket, it has no address");
+  if (c->fd >= 0) close(c->fd);
+  c->fd = -1;
+  c->open = c->goaway = c->lost = 0;
+  c->retry_hint_ms = 0;
+  int fd = open_socket(c->addr, c->o.connect_timeout_ms, err);
+  if (fd < 0) return fd;
+  int fl = fcntl(fd, F_GETFL);
+  if (fl < 0 || fcntl(fd, F_SETFL, fl | O_NONBLOCK) < 0) {
+    close(fd);
+    return seterr(err, SM_CLIENT_EIO, "fcntl: %s", strerror(errno));
+  }
+  c->fd = fd;
+  c->open = 1;
+  c->rlen = c->consume = 0;
+  c->n_cancels = 0;
+  c->probe_rid = 0;
+  c->version = 0;
+  memset(&c->hello, 0, sizeof c->hello);
+  c->parse_limit = SM_PROTO_HELLO_MAX_PAYLOAD;
+  int rc = hello(c, err);
+  if (rc) {
+    broken(c, rc);
+    return rc;
+  }
+  c->parse_limit = c->o.max_response && c->o.max_response <= UINT32_MAX - 4 ? c->o.max_response + 4 : UINT32_MAX;
+  c->reconnects++;
+  return 0;
+}
+
+unsigned sm_client_reconnects(const sm_client *c) { return c ? c->reconnects : 0; }
 
 const sm_proto_hello_resp *sm_client_limits(const sm_client *c) { return &c->hello; }
 int sm_client_is_open(const sm_client *c) { return c && c->open; }
@@ -568,6 +727,7 @@ void sm_client_close(sm_client *c) {
   if (c->fd >= 0) close(c->fd);
   free(c->rbuf);
   free(c->cancels);
+  free(c->addr);
   free(c);
 }
 
@@ -963,6 +1123,8 @@ enum { ST_PENDING = 0, ST_FLIGHT, ST_DONE };
 typedef struct bitem {
   uint32_t rid;
   int state, attempts;
+  int losses; /* connections lost (or drained) while it was in flight */
+  int cut;    /* put back by the last loss, not sent again yet */
   int64_t not_before;
 } bitem;
 
@@ -1051,18 +1213,52 @@ static int deliver(sm_client_batch_cb cb, void *ud, size_t i, const sm_client_re
   return stop;
 }
 
+/* Items in flight when the connection was lost: each goes back to the queue, or fails with
+ * the loss when it was in flight at SM_CLIENT_MAX_LOSSES losses. Returns 1 if a callback
+ * asked to stop. */
+static int requeue_cut(bitem *it, const sm_client_req *reqs, size_t n, size_t *next,
+                       size_t *done, const sm_client_error *loss, sm_client_batch_cb cb,
+                       void *ud, size_t *n_failed) {
+  int stop = 0;
+  for (size_t i = 0; i < n; i++) {
+    if (it[i].state != ST_FLIGHT) continue;
+    if (++it[i].losses < SM_CLIENT_MAX_LOSSES) {
+      it[i].state = ST_PENDING;
+      it[i].cut = 1;
+      it[i].not_before = 0;
+      if (i < *next) *next = i;
+      continue;
+    }
+    sm_client_resp r;
+    memset(&r, 0, sizeof r);
+    r.request_id = it[i].rid;
+    r.attempts = it[i].attempts;
+    r.code = loss->code ? loss->code : SM_CLIENT_ECLOSED;
+    r.err = *loss;
+    r.err.code = r.code;
+    snprintf(r.err.msg, sizeof r.err.msg, "%.200s (sent %d times, the connection was lost each time)",
+             loss->msg, it[i].attempts);
+    it[i].state = ST_DONE;
+    (*done)++;
+    stop |= deliver(cb, ud, i, &reqs[i], &r, n_failed) != 0;
+  }
+  return stop;
+}
+
 int sm_client_batch(sm_client *c, const sm_client_req *reqs, size_t n, unsigned inflight,
                     int busy_retries, sm_client_batch_cb cb, void *ud, size_t *n_failed,
                     sm_client_error *err) {
   clear_err(err);
   if (n_failed) *n_failed = 0;
   if (!c || (n && !reqs) || inflight < 1) return seterr(err, SM_CLIENT_EINVAL, "batch: bad argument");
-  if (!c->open) return seterr(err, SM_CLIENT_ECLOSED, "connection is closed");
-  if (c->hello.max_inflight && inflight > c->hello.max_inflight) inflight = c->hello.max_inflight;
+  if (!c->open && !may_relink(c)) return seterr(err, SM_CLIENT_ECLOSED, "connection is closed");
   bitem *it = calloc(n ? n : 1, sizeof *it);
   if (!it) return seterr(err, SM_CLIENT_ENOMEM, "batch of %zu", n);
   size_t next = 0, in_flight = 0, done = 0;
   int stopping = 0, rc = 0;
+  sm_client_error loss; /* what cut the connection, for the items it cut */
+  memset(&loss, 0, sizeof loss);
+  snprintf(loss.msg, sizeof loss.msg, "connection lost");
   c->last_rx_ms = now_ms();
   union {
     sm_proto_ping ping;
@@ -1074,9 +1270,25 @@ int sm_client_batch(sm_client *c, const sm_client_req *reqs, size_t n, unsigned 
   } msg;
   int64_t dl = -1;
   while (done < n) {
+    /* a lost connection (or a drained one with nothing left in flight): connect again and
+     * put back what it cut; a failure to connect ends the batch below as a loss does */
+    if (!stopping && may_relink(c) && (!c->open || (c->goaway && !in_flight))) {
+      if (requeue_cut(it, reqs, n, &next, &done, &loss, cb, ud, n_failed)) stopping = 1;
+      in_flight = 0;
+      if (done == n || stopping) break; /* nothing left to send: no new connection */
+      sm_client_error re = loss;
+      if ((rc = relink(c, &re))) {
+        seterr(err, rc, "%s", re.msg);
+        for (size_t i = 0; i < n; i++) /* the items the loss cut fail with it (below) */
+          if (it[i].state == ST_PENDING && it[i].cut) it[i].state = ST_FLIGHT;
+        break;
+      }
+    }
+    unsigned window = inflight;
+    if (c->hello.max_inflight && window > c->hello.max_inflight) window = c->hello.max_inflight;
     /* fill the window with items whose time has come (BUSY retries wait their hint) */
     int64_t t = now_ms(), wake = -1;
-    while (!stopping && in_flight < inflight) {
+    while (!stopping && in_flight < window && !(c->goaway && may_relink(c))) {
       size_t pick = n;
       for (size_t i = next; i < n; i++) {
         if (it[i].state != ST_PENDING) {
@@ -1096,6 +1308,10 @@ int sm_client_batch(sm_client *c, const sm_client_req *reqs, size_t n, unsigned 
       int brc = build_item(&reqs[pick], &op, &msg, &r.err);
       if (!brc) brc = send_req(c, op, &msg, &it[pick].rid, &r.err);
       it[pick].attempts++;
+      if (brc && may_relink(c)) { /* the connection died under this send: it stays queued */
+        loss = r.err;
+        break;
+      }
       if (brc) {
         it[pick].state = ST_DONE;
         done++;
@@ -1109,10 +1325,12 @@ int sm_client_batch(sm_client *c, const sm_client_req *reqs, size_t n, unsigned 
         continue;
       }
       it[pick].state = ST_FLIGHT;
+      it[pick].cut = 0;
       in_flight++;
       dl = deadline_in(c->o.compute_timeout_ms);
     }
     if (rc || done == n) break;
+    if (!stopping && may_relink(c) && (!c->open || (c->goaway && !in_flight))) continue;
     if (stopping && !in_flight) break;
     if (!in_flight) { /* only BUSY items waiting for their hint */
       int64_t d = wake - now_ms();
@@ -1124,7 +1342,7 @@ int sm_client_batch(sm_client *c, const sm_client_req *reqs, size_t n, unsigned 
     }
     /* wait for one frame; a pending retry shortens the wait */
     int64_t w = dl;
-    if (wake >= 0 && (w < 0 || wake < w) && in_flight < inflight) w = wake;
+    if (wake >= 0 && (w < 0 || wake < w) && in_flight < window) w = wake;
     sm_proto_frame f;
     sm_client_error fe;
     int frc = next_frame_live(c, w, !stopping, &f, &fe);
@@ -1141,11 +1359,19 @@ int sm_client_batch(sm_client *c, const sm_client_req *reqs, size_t n, unsigned 
       dl = deadline_in(c->o.io_timeout_ms);
       continue;
     }
+    if (frc && !stopping && may_relink(c)) {
+      loss = fe;
+      continue;
+    }
     if (frc) {
       rc = seterr(err, frc, "%s", fe.msg);
       break;
     }
     int s = side_frame(c, &f, &fe);
+    if (s < 0 && !stopping && may_relink(c)) {
+      loss = fe;
+      continue;
+    }
     if (s < 0) {
       rc = seterr(err, s, "%s", fe.msg);
       if (err) err->status = fe.status;
@@ -1173,6 +1399,18 @@ int sm_client_batch(sm_client *c, const sm_client_req *reqs, size_t n, unsigned 
       if (i < next) next = i;
       continue;
     }
+    if (f.h.status == SM_ST_SHUTTING_DOWN && !stopping) {
+      /* not executed: the server is draining (it sent GOAWAY before); the next connection
+       * takes the item */
+      c->goaway = 1;
+      if (may_relink(c) && ++it[i].losses < SM_CLIENT_MAX_LOSSES) {
+        it[i].state = ST_PENDING;
+        it[i].cut = 1;
+        it[i].not_before = 0;
+        if (i < next) next = i;
+        continue;
+      }
+    }
     it[i].state = ST_DONE;
     done++;
     if (f.h.status != SM_ST_OK) r.code = status_error(c, &f, &r.err);
@@ -1182,6 +1420,10 @@ int sm_client_batch(sm_client *c, const sm_client_req *reqs, size_t n, unsigned 
       for (size_t j = 0; j < n; j++)
         if (it[j].state == ST_FLIGHT && sm_client_cancel(c, it[j].rid, &fe)) break;
       dl = deadline_in(c->o.io_timeout_ms);
+    }
+    if (!c->open && !stopping && may_relink(c)) {
+      loss = r.err;
+      continue;
     }
     if (!c->open) {
       rc = seterr(err, r.code ? r.code : SM_CLIENT_ECLOSED, "%s", r.code ? r.err.msg : "connection lost");

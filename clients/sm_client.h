@@ -41,6 +41,22 @@
  *     closed connection make the client unusable: every later call returns
  *     SM_CLIENT_ECLOSED (sm_client_is_open tells); reconnect to go on. After a graceful
  *     GOAWAY the answers in flight are still read, new requests fail with ECLOSED.
+ *   Lost connections (opts.reconnect_tries > 0, clients made by sm_client_connect only).
+ *     When the connection is lost before an answer came (EOF, reset, a PING probe left
+ *     unanswered, a GOAWAY: graceful, TIMEOUT, TOO_MANY_CONNECTIONS or OVERLOADED) the
+ *     client connects again to the same address (a front such as HAProxy then picks a
+ *     live daemon) and sends again the requests whose answers it has not received, when
+ *     they are idempotent (sm_proto_op_flags' SM_OPF_IDEMPOTENT: PING, STATS, PUT_SHAPE,
+ *     HAS_SHAPE, PREPARE, MATCH, DISTANCE, QUERY; never DROP_SHAPE or CANCEL). Answers
+ *     already received are never asked for again. Connecting is tried reconnect_tries
+ *     times per loss, the waits between tries growing from reconnect_backoff_ms (doubling,
+ *     at most 2 s, jittered; at least a GOAWAY's retry hint). A request that was in flight
+ *     at SM_CLIENT_MAX_LOSSES losses fails with the loss's error instead of being sent
+ *     again, so a request that brings down every daemon it reaches cannot take a whole
+ *     fleet down. Single calls and sm_client_batch both do this; nothing is resent after
+ *     the caller's stop flag, an error the server reported, or a compute_timeout_ms.
+ *     The new connection may land on another daemon: resending assumes it serves the same
+ *     shapes (one shared store, docs/DEPLOY.md).
  */
 #ifndef SM_CLIENT_H
 #define SM_CLIENT_H
@@ -95,7 +111,13 @@ typedef struct sm_client_opts {
    * ~100 ms: a single call returns ECANCELED and closes the connection (which cancels its
    * work server-side); a batch sends CANCEL for its requests in flight first. */
   const volatile sig_atomic_t *stop;
+  int reconnect_tries;      /* connection attempts after a lost connection; default 0 =
+                               never reconnect (see "Lost connections" above) */
+  int reconnect_backoff_ms; /* first wait between two attempts; default 100 */
 } sm_client_opts;
+
+/* Losses of the connection a request may be in flight at before it fails. */
+#define SM_CLIENT_MAX_LOSSES 3
 
 void sm_client_opts_default(sm_client_opts *o);
 
@@ -116,6 +138,15 @@ int sm_client_connect_fd(int fd, const sm_client_opts *opts, sm_client **out,
 /* The server's HELLO answer (negotiated version, limits). Valid while c lives. */
 const sm_proto_hello_resp *sm_client_limits(const sm_client *c);
 int sm_client_is_open(const sm_client *c);
+/* Closes the connection (if open) and opens a new one to the address of sm_client_connect
+ * with the same options (one attempt, HELLO again; the negotiated version and limits may
+ * change). The client keeps its identity: request ids go on increasing. Returns 0,
+ * SM_CLIENT_EINVAL for a client of sm_client_connect_fd (no address), or the error of
+ * sm_client_connect (the client is then closed; it may be tried again). */
+int sm_client_reconnect(sm_client *c, sm_client_error *err);
+/* Times this client connected again after a lost connection (by itself or by
+ * sm_client_reconnect). */
+unsigned sm_client_reconnects(const sm_client *c);
 void sm_client_close(sm_client *c); /* NULL is fine */
 
 /* ---- shape ids ---- */
@@ -230,7 +261,8 @@ typedef struct sm_client_resp {
   uint32_t request_id;
   int code;            /* 0 or SM_CLIENT_E* (ESTATUS: see err.status) */
   sm_client_error err; /* when code != 0 */
-  int attempts;        /* sends (BUSY answers are retried) */
+  int attempts;        /* sends (BUSY answers are retried; a request cut by a lost
+                          connection is sent again on the next one) */
   /* the result for req->op, when code == 0 */
   sm_client_match_result match;
   sm_proto_dist dist;
@@ -250,10 +282,14 @@ typedef int (*sm_client_batch_cb)(void *ud, size_t index, const sm_client_req *r
 
 /* Sends reqs[0..n) keeping up to `inflight` (>= 1; capped by the server's max_inflight) in
  * flight. An item answered BUSY is re-sent after the server's retry hint, at most
- * busy_retries times (< 0: without limit; BUSY means the server is alive and working). Item failures go to the callback and do not stop the batch; the
- * return value is 0, or the error that ended the batch early (connection lost:
- * unanswered items get a callback with that code; ECANCELED after a stop). *n_failed
- * (may be NULL) counts callbacks with code != 0. */
+ * busy_retries times (< 0: without limit; BUSY means the server is alive and working), and
+ * so is an item answered SHUTTING_DOWN when the client reconnects. With
+ * opts.reconnect_tries, a lost connection is replaced and the items in flight on it are
+ * sent again on the new one (contract, "Lost connections"); the batch goes on. Item
+ * failures go to the callback and do not stop the batch; the return value is 0, or the
+ * error that ended the batch early (connection lost and not replaced: unanswered items
+ * in flight get a callback with that code, items not yet sent get none; ECANCELED after a
+ * stop). *n_failed (may be NULL) counts callbacks with code != 0. */
 int sm_client_batch(sm_client *c, const sm_client_req *reqs, size_t n, unsigned inflight,
                     int busy_retries, sm_client_batch_cb cb, void *ud, size_t *n_failed,
                     sm_client_error *err);

@@ -291,20 +291,23 @@ typedef struct op_info {
   const char *name;
   unsigned flags;
 } op_info;
-enum { REQ = SM_OPF_REQUEST, Q = SM_OPF_QUEUED, B = SM_OPF_BATCHABLE };
+enum { REQ = SM_OPF_REQUEST, Q = SM_OPF_QUEUED, B = SM_OPF_BATCHABLE, I = SM_OPF_IDEMPOTENT };
+/* Not idempotent: HELLO (sets up the connection it is sent on), DROP_SHAPE (a resend after
+ * a lost answer reports NOT_FOUND for a drop that happened, and would remove a copy another
+ * client PUT in between), CANCEL (names a request of its own connection). */
 static const op_info op_table[SM_OP_MAX_ + 1] = {
   [0] = {"INVALID", 0},
   [SM_OP_HELLO] = {"HELLO", REQ},
-  [SM_OP_PING] = {"PING", REQ | B},
-  [SM_OP_STATS] = {"STATS", REQ},
-  [SM_OP_PUT_SHAPE] = {"PUT_SHAPE", REQ | Q},
-  [SM_OP_HAS_SHAPE] = {"HAS_SHAPE", REQ | B},
+  [SM_OP_PING] = {"PING", REQ | B | I},
+  [SM_OP_STATS] = {"STATS", REQ | I},
+  [SM_OP_PUT_SHAPE] = {"PUT_SHAPE", REQ | Q | I},
+  [SM_OP_HAS_SHAPE] = {"HAS_SHAPE", REQ | B | I},
   [SM_OP_DROP_SHAPE] = {"DROP_SHAPE", REQ},
-  [SM_OP_PREPARE] = {"PREPARE", REQ | Q | B},
-  [SM_OP_MATCH] = {"MATCH", REQ | Q | B},
-  [SM_OP_DISTANCE] = {"DISTANCE", REQ | Q | B},
-  [SM_OP_QUERY] = {"QUERY", REQ | Q | B},
-  [SM_OP_BATCH] = {"BATCH", REQ | Q},
+  [SM_OP_PREPARE] = {"PREPARE", REQ | Q | B | I},
+  [SM_OP_MATCH] = {"MATCH", REQ | Q | B | I},
+  [SM_OP_DISTANCE] = {"DISTANCE", REQ | Q | B | I},
+  [SM_OP_QUERY] = {"QUERY", REQ | Q | B | I},
+  [SM_OP_BATCH] = {"BATCH", REQ | Q | I},
   [SM_OP_CANCEL] = {"CANCEL", REQ},
   [SM_OP_GOAWAY] = {"GOAWAY", SM_OPF_SERVER},
 };

@@ -105,12 +105,17 @@ enum sm_proto_op {
  *     (the server sends it unasked: GOAWAY);
  *   SM_OPF_QUEUED: the server runs it on a worker behind the job queue, so its answer may
  *     wait for other clients' computations; without it the loop thread answers at once;
- *   SM_OPF_BATCHABLE: it may be an item of a BATCH. */
+ *   SM_OPF_BATCHABLE: it may be an item of a BATCH;
+ *   SM_OPF_IDEMPOTENT: sending it again has the effect of sending it once and gets the same
+ *     result (flags that say whether work was done, EXISTED and CACHED, and times may
+ *     differ), so a client may resend it on a new connection when the one it was sent on
+ *     was lost before the answer came (PROTOCOL.md 3, "Lost connections"). */
 enum {
   SM_OPF_REQUEST = 1u << 0,
   SM_OPF_SERVER = 1u << 1,
   SM_OPF_QUEUED = 1u << 2,
-  SM_OPF_BATCHABLE = 1u << 3
+  SM_OPF_BATCHABLE = 1u << 3,
+  SM_OPF_IDEMPOTENT = 1u << 4
 };
 /* The flags of opcode; 0 for 0 and unknown opcodes. */
 unsigned sm_proto_op_flags(uint8_t opcode);

@@ -23,6 +23,7 @@
 #include <string.h>
 #include <sys/socket.h>
 #include <sys/stat.h>
+#include <sys/un.h>
 #include <sys/wait.h>
 #include <time.h>
 #include <unistd.h>
@@ -838,6 +839,178 @@ static void cli_queued(int fd, void *ud) {
   sm_client_close(c);
 }
 
+/* ---- case: lost connections (sm_client.h, "Lost connections"). The peer listens on a Unix
+ * socket, so the client can connect again: a batch whose connection dies keeps every answer
+ * it got and resends only what was cut; a graceful GOAWAY moves the rest to a new
+ * connection; a single call is resent; an item that brings every connection down fails
+ * after SM_CLIENT_MAX_LOSSES; a later call connects again by itself. ---- */
+static int accept_peer(int lfd, peer *p) {
+  struct pollfd pf = {lfd, POLLIN, 0};
+  if (poll(&pf, 1, 5000) != 1) {
+    CHECK_MSG(0, "%s", "the client did not connect again");
+    return 0;
+  }
+  p->fd = accept(lfd, NULL, NULL);
+  p->len = p->used = 0;
+  REQUIRE(p->fd >= 0);
+  srv_hello(p, 8);
+  return 1;
+}
+
+static void answer_dist(peer *p, uint32_t rid, double total) {
+  sm_proto_distance_resp dr = {{total, 0, 0, 0, 0}, 0};
+  sm_proto_header h = resp_hdr(rid);
+  SEND(p, sm_proto_enc_distance_resp(g_out, sizeof g_out, &h, &dr));
+}
+
+/* Expects DISTANCE requests for items want[0..n) in that order (item = x[0]); rid[item]. */
+static void expect_items(peer *p, const int *want, int n, uint32_t *rid) {
+  for (int k = 0; k < n; k++) {
+    sm_proto_frame f;
+    if (!expect(p, SM_OP_DISTANCE, &f)) exit(1);
+    CHECK_MSG(f.body[0] == want[k], "request %d: item %d, expected %d", k, f.body[0], want[k]);
+    rid[f.body[0]] = f.h.request_id;
+  }
+}
+
+static void srv_reconnect(int lfd) {
+  peer p = {-1, NULL, 0, 0, 0};
+  uint32_t rid[16];
+  sm_proto_frame f;
+  /* connection 1: items 0..3 fill the window; 1 and 3 are answered, 4 and 5 take their
+   * places; then the daemon dies with 0, 2, 4, 5 in flight */
+  if (!accept_peer(lfd, &p)) exit(1);
+  expect_items(&p, (int[]){0, 1, 2, 3}, 4, rid);
+  answer_dist(&p, rid[1], 0.1);
+  answer_dist(&p, rid[3], 0.3);
+  expect_items(&p, (int[]){4, 5}, 2, rid);
+  close(p.fd);
+  /* connection 2: the cut items, nothing else; then a graceful GOAWAY: 0 and 2 answered,
+   * 4 refused SHUTTING_DOWN (not run), 5 answered; no new request on this connection */
+  if (!accept_peer(lfd, &p)) exit(1);
+  expect_items(&p, (int[]){0, 2, 4, 5}, 4, rid);
+  send_error(&p, SM_OP_GOAWAY, 0, SM_ST_OK, 5000, 20, "draining");
+  answer_dist(&p, rid[0], 0.0);
+  answer_dist(&p, rid[2], 0.2);
+  send_error(&p, SM_OP_DISTANCE, rid[4], SM_ST_SHUTTING_DOWN, 0, 0, "shutting down");
+  answer_dist(&p, rid[5], 0.5);
+  CHECK(peer_frame(&p, &f, 5000) == 2); /* the client leaves the drained connection */
+  close(p.fd);
+  /* connection 3: 4 again, and 6, 7 */
+  if (!accept_peer(lfd, &p)) exit(1);
+  expect_items(&p, (int[]){4, 6, 7}, 3, rid);
+  answer_dist(&p, rid[4], 0.4);
+  answer_dist(&p, rid[7], 0.7);
+  answer_dist(&p, rid[6], 0.6);
+  /* a single DISTANCE, cut once */
+  expect_items(&p, (int[]){9}, 1, rid);
+  close(p.fd);
+  if (!accept_peer(lfd, &p)) exit(1);
+  expect_items(&p, (int[]){9}, 1, rid);
+  answer_dist(&p, rid[9], 0.9);
+  /* a batch of one item that every connection dies of: sent on 3 connections, then it
+   * fails and no fourth connection is made for it */
+  for (int t = 0; t < SM_CLIENT_MAX_LOSSES; t++) {
+    if (t && !accept_peer(lfd, &p)) exit(1);
+    expect_items(&p, (int[]){10}, 1, rid);
+    close(p.fd);
+  }
+  /* the next call connects again by itself */
+  if (!accept_peer(lfd, &p)) exit(1);
+  sm_proto_ping ping;
+  REQUIRE(expect(&p, SM_OP_PING, &f));
+  REQUIRE(sm_proto_dec_ping(f.body, f.body_len, &ping) == 0);
+  sm_proto_header h = resp_hdr(f.h.request_id);
+  SEND(&p, sm_proto_enc_ping(g_out, sizeof g_out, &h, 1, &ping));
+  CHECK(peer_frame(&p, &f, 5000) == 2);
+  close(p.fd);
+  struct pollfd pf = {lfd, POLLIN, 0};
+  CHECK_MSG(poll(&pf, 1, 100) == 0, "%s", "a connection nobody needed");
+  free(p.buf);
+}
+
+static void cli_reconnect(const char *addr) {
+  sm_client_opts o;
+  sm_client_error e;
+  sm_client *c = NULL;
+  sm_client_opts_default(&o);
+  o.io_timeout_ms = 5000;
+  o.reconnect_tries = 3;
+  o.reconnect_backoff_ms = 10;
+  int rc = sm_client_connect(addr, &o, &c, &e);
+  REQUIRE(rc == 0);
+  sm_client_req q[8];
+  memset(q, 0, sizeof q);
+  for (int i = 0; i < 8; i++) {
+    q[i].op = SM_OP_DISTANCE;
+    q[i].x[0] = (uint8_t)i;
+  }
+  bseen s;
+  memset(&s, 0, sizeof s);
+  for (int i = 0; i < 8; i++) s.total[i] = -2;
+  size_t nf = 9;
+  rc = sm_client_batch(c, q, 8, 4, 0, batch_cb, &s, &nf, &e);
+  CHECK_MSG(rc == 0 && nf == 0 && s.n == 8, "batch over lost connections: %d %s, %zu failed, %zu answers",
+            rc, e.msg, nf, s.n);
+  int seen[8] = {0};
+  for (size_t k = 0; k < s.n && k < 8; k++) seen[s.order[k]]++;
+  for (int i = 0; i < 8; i++) {
+    CHECK_MSG(seen[i] == 1 && s.code[i] == 0 && s.total[i] == i / 10.0, "item %d: %d answers, code %d, %g",
+              i, seen[i], s.code[i], s.total[i]);
+  }
+  CHECK_MSG(s.attempts[1] == 1 && s.attempts[3] == 1 && s.attempts[0] == 2 && s.attempts[5] == 2 &&
+            s.attempts[4] == 3 && s.attempts[6] == 1, "attempts %d %d %d %d %d %d", s.attempts[0],
+            s.attempts[1], s.attempts[3], s.attempts[4], s.attempts[5], s.attempts[6]);
+  CHECK(sm_client_reconnects(c) == 2);
+  uint8_t x[32] = {9}, y[32] = {0};
+  sm_proto_dist d;
+  rc = sm_client_distance(c, x, y, NULL, &d, NULL, &e);
+  CHECK_MSG(rc == 0 && d.total == 0.9 && sm_client_reconnects(c) == 3, "single call: %d %s", rc, e.msg);
+  memset(&s, 0, sizeof s);
+  q[0].x[0] = 10;
+  rc = sm_client_batch(c, q, 1, 1, 0, batch_cb, &s, &nf, &e);
+  CHECK_MSG(rc == 0 && nf == 1 && s.n == 1 && s.code[0] == SM_CLIENT_ECLOSED && s.attempts[0] == SM_CLIENT_MAX_LOSSES,
+            "an item every connection dies of: %d, %zu failed, code %d, %d sends", rc, nf, s.code[0], s.attempts[0]);
+  CHECK(sm_client_reconnects(c) == 5 && !sm_client_is_open(c));
+  CHECK(sm_client_ping(c, NULL, &e) == 0 && sm_client_reconnects(c) == 6);
+  sm_client_close(c);
+  /* without an address there is nothing to connect to */
+  int sv[2];
+  REQUIRE(socketpair(AF_UNIX, SOCK_STREAM, 0, sv) == 0);
+  close(sv[1]);
+  CHECK(sm_client_connect_fd(sv[0], &o, &c, &e) != 0);
+}
+
+static void test_reconnect(void) {
+  char path[108];
+  snprintf(path, sizeof path, "%s/recon_%ld.sock", SM_TEST_TMP, (long)getpid());
+  if (strlen(path) >= sizeof(((struct sockaddr_un *)0)->sun_path))
+    snprintf(path, sizeof path, "/tmp/sm_recon_%ld.sock", (long)getpid());
+  unlink(path);
+  int lfd = socket(AF_UNIX, SOCK_STREAM, 0);
+  struct sockaddr_un su;
+  memset(&su, 0, sizeof su);
+  su.sun_family = AF_UNIX;
+  memcpy(su.sun_path, path, strlen(path) + 1);
+  REQUIRE(lfd >= 0 && bind(lfd, (struct sockaddr *)&su, sizeof su) == 0 && listen(lfd, 8) == 0);
+  fflush(NULL);
+  pid_t pid = fork();
+  REQUIRE(pid >= 0);
+  if (pid == 0) {
+    sm_test_failures = 0;
+    srv_reconnect(lfd);
+    _exit(sm_test_failures ? 1 : 0);
+  }
+  close(lfd);
+  char addr[128];
+  snprintf(addr, sizeof addr, "unix:%s", path);
+  cli_reconnect(addr);
+  int st = 0;
+  REQUIRE(waitpid(pid, &st, 0) == pid);
+  CHECK_MSG(WIFEXITED(st) && WEXITSTATUS(st) == 0, "reconnect: the scripted server saw failures (status %d)", st);
+  unlink(path);
+}
+
 /* ------------------------------------------------------------------ part 3: daemon */
 #if defined(SM_SERVER_BIN) && defined(SM_CLI_BIN)
 
@@ -1157,6 +1330,7 @@ int main(void) {
   run_pair("garbage", srv_garbage, cli_garbage, &garbage);
   run_pair("silent", srv_garbage, cli_garbage, &silent);
   run_pair("queued", srv_queued, cli_queued, NULL);
+  test_reconnect();
   unlink(g_off);
   sm_mesh_destroy(g_mesh);
 
