@@ -234,6 +234,7 @@ int main(int argc, char **argv) {
   /* One BLAS thread, as in the shapematch CLI (see its main for the measurements), unless
    * OPENBLAS_NUM_THREADS is set: the children inherit the setting. */
   if (!getenv("OPENBLAS_NUM_THREADS")) openblas_set_num_threads(1);
+  sm_eigs_openmp_off(); /* as the daemon: one thread per basis, CHOLMOD's included */
   int reps = 5, k = 100, parallel = 0, nthreads = 2, kind = SM_BASIS_ELASTIC;
   double eta = 0;
   const char *meshes[32];

@@ -32,16 +32,28 @@
  *      the second daemon really runs one BLAS thread: the row shows that. To still answer
  *      the question, the same trade is measured in-process, where this program controls
  *      BLAS: 2 threads x 1 BLAS thread vs 1 thread x 2 BLAS threads.
+ *   5. PREPARE throughput: N distinct shapes (the first N 5k TOSCA meshes by name, else
+ *      synthetic blobs) PUT without prepare on a fresh data dir, then prepared cold with
+ *      PREPARE by W clients taking shapes from a shared counter, on a daemon with
+ *      --threads W, for W = 1 and W = 2 (alternating, on fresh data dirs, --prepare-runs
+ *      times). shapes/s = N / wall time; the ratio of the medians (2 workers over 1)
+ *      shows whether preparations run in parallel (2 cores: ideal 2, target >= 1.8).
+ *
+ * --sections picks sections by digit (default 12345; 2 and 4 need 1). --server runs
+ * another daemon binary (e.g. an older build, for a before/after in one script).
  *
  * Usage: bench_service [--match N] [--dist N] [--overhead N] [--cold N] [--emul N]
- *                      [--budget S] [--threads N] [--json FILE] [--keep]
+ *                      [--budget S] [--threads N] [--prepare-shapes N] [--prepare-runs N]
+ *                      [--sections DIGITS] [--server PATH] [--json FILE] [--keep]
  */
 #include <cblas.h> /* OpenBLAS: openblas_set_num_threads, for the in-process side */
+#include <dirent.h>
 #include <errno.h>
 #include <ftw.h>
 #include <math.h>
 #include <pthread.h>
 #include <signal.h>
+#include <stdatomic.h>
 #include <stdint.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -60,6 +72,9 @@
 
 #define MAX_CLIENTS 8
 #define MAX_ROWS 32
+#define MAX_PREP_SHAPES 40
+
+static const char *g_server_bin = SM_SERVER_BIN;
 
 /* ------------------------------------------------------------------ small helpers */
 
@@ -150,7 +165,7 @@ static int daemon_start(daemon_proc *d, const char *tmp, const char *data, int t
     if (!f) _exit(126);
     dup2(fileno(stderr), 1);
     if (blas_env) setenv("OPENBLAS_NUM_THREADS", blas_env, 1);
-    execl(SM_SERVER_BIN, "shapematchd", "--port", "0", "--data-dir", data, "--threads", th,
+    execl(g_server_bin, "shapematchd", "--port", "0", "--data-dir", data, "--threads", th,
           (char *)NULL);
     _exit(127);
   }
@@ -469,6 +484,145 @@ static double local_throughput(const sm_shape *s[2], int threads, int blas, int 
   return (n - failed) / dt;
 }
 
+/* ------------------------------------------------------------------ PREPARE throughput */
+
+typedef struct shape_set {
+  int n;
+  char name[MAX_PREP_SHAPES][64];
+  uint8_t *draco[MAX_PREP_SHAPES];
+  size_t len[MAX_PREP_SHAPES];
+  uint8_t id[MAX_PREP_SHAPES][SM_PROTO_ID_LEN];
+} shape_set;
+
+static int cmp_name(const void *a, const void *b) {
+  return strcmp((const char *)a, (const char *)b);
+}
+
+/* The first n .drc files of the 5k TOSCA set by name (distinct shapes, 4-5k vertices
+ * each), or n synthetic blobs of different seeds when the shared data is absent. */
+static int load_shape_set(shape_set *ss, int n, sm_error *err) {
+  char dir[512], names[64][64];
+  int nn = 0;
+  snprintf(dir, sizeof dir, "%s/tosca_classification_5k/drc", SM_DATA_DIR);
+  DIR *d = opendir(dir);
+  struct dirent *de;
+  while (d && (de = readdir(d)) && nn < 64) {
+    size_t l = strlen(de->d_name);
+    if (l > 4 && l < 64 && !strcmp(de->d_name + l - 4, ".drc")) memcpy(names[nn++], de->d_name, l + 1);
+  }
+  if (d) closedir(d);
+  qsort(names, (size_t)nn, sizeof names[0], cmp_name);
+  ss->n = n;
+  for (int i = 0; i < n; i++) {
+    if (i < nn) {
+      char path[600];
+      snprintf(path, sizeof path, "%s/%s", dir, names[i]);
+      if (sm_read_file_bytes(path, (size_t)1 << 30, &ss->draco[i], &ss->len[i], err)) return -1;
+      snprintf(ss->name[i], sizeof ss->name[i], "%s", names[i]);
+    } else {
+      const double stretch[3] = {1.0, 0.7 + 0.02 * i, 0.6};
+      sm_mesh *m = NULL;
+      int rc = sm_synth_blob(5, 0.25, 101u + 13u * (unsigned)i, stretch, &m, err);
+      if (!rc) rc = sm_draco_encode(m, 0, &ss->draco[i], &ss->len[i], err);
+      sm_mesh_destroy(m);
+      if (rc) return rc;
+      snprintf(ss->name[i], sizeof ss->name[i], "blob(5, seed %u)", 101u + 13u * (unsigned)i);
+    }
+    sm_client_shape_id(ss->draco[i], ss->len[i], ss->id[i]);
+  }
+  return 0;
+}
+
+typedef struct prep_client {
+  const shape_set *ss;
+  atomic_int *next;
+  pthread_barrier_t *bar;
+  sm_client *c;
+  int done, failed;
+  double t_start, t_end;
+  double server_s[MAX_PREP_SHAPES]; /* the daemon's own preparation time per shape done */
+  char err[320];
+} prep_client;
+
+static void *prep_main(void *arg) {
+  prep_client *w = arg;
+  pthread_barrier_wait(w->bar);
+  w->t_start = sm_now();
+  for (int i; (i = atomic_fetch_add(w->next, 1)) < w->ss->n;) {
+    sm_client_error e;
+    sm_proto_prepare_resp pr;
+    int rc;
+    while ((rc = sm_client_prepare(w->c, w->ss->id[i], 0, 0, 0, &pr, &e)) ==
+               SM_CLIENT_ESTATUS && e.status == SM_ST_BUSY)
+      sleep_ms(e.retry_after_ms ? e.retry_after_ms : 10);
+    if (rc || (pr.flags & SM_PREP_R_CACHED)) { /* a cached answer did not prepare anything */
+      w->failed++;
+      snprintf(w->err, sizeof w->err, "%s", rc ? e.msg : "answered from the cache");
+      continue;
+    }
+    w->server_s[w->done++] =
+        1e-6 * (double)(pr.t_clean_us + pr.t_lb_us + pr.t_elastic_us + pr.t_desc_us);
+  }
+  w->t_end = sm_now();
+  return NULL;
+}
+
+/* One round: a daemon with `workers` workers on a fresh data dir, every shape PUT without
+ * preparation (untimed), then `workers` clients PREPARE them all. Returns shapes/s (NaN on
+ * failure); *server_med: median of the daemon's per-shape preparation times. */
+static double prepare_round(const shape_set *ss, int workers, double *server_med) {
+  char tmp[256], data[300];
+  *server_med = NAN;
+  if (make_tmpdir(tmp, sizeof tmp)) return NAN;
+  snprintf(data, sizeof data, "%s/data", tmp);
+  daemon_proc dp = {0};
+  prep_client w[MAX_CLIENTS];
+  pthread_t th[MAX_CLIENTS];
+  memset(w, 0, sizeof w);
+  double rate = NAN;
+  int ok = !daemon_start(&dp, tmp, data, workers, NULL);
+  sm_client *c = NULL;
+  if (ok) ok = !connect_client(dp.addr, &c);
+  for (int i = 0; ok && i < ss->n; i++) {
+    sm_client_error e;
+    if (sm_client_put(c, ss->draco[i], ss->len[i], 0, NULL, NULL, &e)) {
+      fprintf(stderr, "prepare phase: PUT %s: %s\n", ss->name[i], e.msg);
+      ok = 0;
+    }
+  }
+  sm_client_close(c);
+  for (int i = 0; ok && i < workers; i++) ok = !connect_client(dp.addr, &w[i].c);
+  if (ok) {
+    atomic_int next;
+    atomic_init(&next, 0);
+    pthread_barrier_t bar;
+    pthread_barrier_init(&bar, NULL, (unsigned)workers);
+    for (int i = 0; i < workers; i++) {
+      w[i].ss = ss, w[i].next = &next, w[i].bar = &bar;
+      pthread_create(&th[i], NULL, prep_main, &w[i]);
+    }
+    double t0 = INFINITY, t1 = 0, all[MAX_PREP_SHAPES];
+    int done = 0, failed = 0;
+    for (int i = 0; i < workers; i++) {
+      pthread_join(th[i], NULL);
+      if (w[i].t_start < t0) t0 = w[i].t_start;
+      if (w[i].t_end > t1) t1 = w[i].t_end;
+      for (int k = 0; k < w[i].done; k++) all[done++] = w[i].server_s[k];
+      failed += w[i].failed;
+      if (w[i].failed) fprintf(stderr, "  prepare client %d: %d failed (%s)\n", i, w[i].failed, w[i].err);
+    }
+    pthread_barrier_destroy(&bar);
+    if (!failed && done == ss->n && t1 > t0) {
+      rate = done / (t1 - t0);
+      *server_med = median(all, done);
+    }
+  }
+  for (int i = 0; i < workers; i++) sm_client_close(w[i].c);
+  daemon_stop(&dp);
+  rm_tree(tmp);
+  return rate;
+}
+
 /* ------------------------------------------------------------------ main */
 
 /* NaN is not JSON: unmeasured values become null. */
@@ -487,6 +641,8 @@ static const row *find_row(const char *section, const char *op, int clients) {
 
 int main(int argc, char **argv) {
   int n_match = 20, n_dist = 40, n_over = 15, n_cold = 2, n_emul = 8, threads = 2, keep = 0;
+  int n_prep = 4, prep_runs = 3;
+  const char *sections = "12345";
   double budget = 120.0;
   const char *json = "bench_service.json";
   for (int i = 1; i < argc; i++) {
@@ -498,28 +654,42 @@ int main(int argc, char **argv) {
     else if (!strcmp(argv[i], "--emul") && more) n_emul = atoi(argv[++i]);
     else if (!strcmp(argv[i], "--budget") && more) budget = atof(argv[++i]);
     else if (!strcmp(argv[i], "--threads") && more) threads = atoi(argv[++i]);
+    else if (!strcmp(argv[i], "--prepare-shapes") && more) n_prep = atoi(argv[++i]);
+    else if (!strcmp(argv[i], "--prepare-runs") && more) prep_runs = atoi(argv[++i]);
+    else if (!strcmp(argv[i], "--sections") && more) sections = argv[++i];
+    else if (!strcmp(argv[i], "--server") && more) g_server_bin = argv[++i];
     else if (!strcmp(argv[i], "--json") && more) json = argv[++i];
     else if (!strcmp(argv[i], "--keep")) keep = 1;
     else {
       fprintf(stderr,
               "usage: %s [--match N] [--dist N] [--overhead N] [--cold N] [--emul N] "
-              "[--budget S] [--threads N] [--json FILE] [--keep]\n",
+              "[--budget S] [--threads N] [--prepare-shapes N] [--prepare-runs N] "
+              "[--sections DIGITS] [--server PATH] [--json FILE] [--keep]\n",
               argv[0]);
       return 2;
     }
   }
   if (n_match < 1 || n_dist < 1 || n_over < 1 || n_cold < 0 || n_emul < 2 || threads < 1 ||
-      budget <= 0) {
-    fprintf(stderr, "counts must be >= 1 (--emul >= 2), --budget > 0\n");
+      budget <= 0 || n_prep < 2 || n_prep > MAX_PREP_SHAPES || prep_runs < 1) {
+    fprintf(stderr, "counts must be >= 1 (--emul >= 2, --prepare-shapes 2..%d), --budget > 0\n",
+            MAX_PREP_SHAPES);
     return 2;
   }
+  int want[6] = {0};
+  for (const char *c = sections; *c; c++)
+    if (*c >= '1' && *c <= '5') want[*c - '0'] = 1;
+  if (!want[1] && (want[2] || want[4])) {
+    printf("note: sections 2 and 4 need section 1; skipped\n");
+    want[2] = want[4] = 0;
+  }
   signal(SIGPIPE, SIG_IGN);
-  /* The in-process side runs like a daemon worker: one BLAS thread. */
+  /* The in-process side runs like a daemon worker: one BLAS thread, no OpenMP teams. */
   openblas_set_num_threads(1);
+  sm_eigs_openmp_off();
 
   char load0[256], load1[256];
   load_string(load0, sizeof load0);
-  printf("bench_service: daemon %s\nload before: %s\n", SM_SERVER_BIN, load0);
+  printf("bench_service: daemon %s\nload before: %s\n", g_server_bin, load0);
 
   sm_error err;
   sm_error_clear(&err);
@@ -535,11 +705,12 @@ int main(int argc, char **argv) {
   /* In-process shapes, outside any timing. */
   sm_shape *ls[2] = {NULL, NULL};
   double tp = sm_now();
-  if (prepare_local(&in, ls, &err)) {
+  if ((want[2] || want[4]) && prepare_local(&in, ls, &err)) {
     fprintf(stderr, "in-process prepare: %s\n", err.msg);
     return 1;
   }
-  printf("in-process prepare of both shapes: %.1f s (1 BLAS thread)\n", sm_now() - tp);
+  if (want[2] || want[4])
+    printf("in-process prepare of both shapes: %.1f s (1 BLAS thread)\n", sm_now() - tp);
 
   char tmpA[256], dataA[300], dnameA[40], dnameB[40];
   if (make_tmpdir(tmpA, sizeof tmpA)) {
@@ -553,10 +724,11 @@ int main(int argc, char **argv) {
   daemon_proc dA = {0};
 
   /* ---- 1. warm throughput ---- */
-  printf("\n[1] warm throughput, daemon --threads %d\n", threads);
-  if (daemon_start(&dA, tmpA, dataA, threads, NULL) || warm_up(dA.addr, &in, 1)) rc = 1;
+  if (want[1]) printf("\n[1] warm throughput, daemon --threads %d\n", threads);
+  if (want[1] && (daemon_start(&dA, tmpA, dataA, threads, NULL) || warm_up(dA.addr, &in, 1)))
+    rc = 1;
   static const int NCL[3] = {1, 2, 8};
-  for (int op = OP_DISTANCE; !rc && op >= OP_MATCH; op--)
+  for (int op = OP_DISTANCE; want[1] && !rc && op >= OP_MATCH; op--)
     for (int k = 0; k < 3; k++)
       if (run_phase("warm", dnameA, dA.addr, op, &in, NCL[k],
                     op == OP_MATCH ? n_match : n_dist, budget))
@@ -566,7 +738,7 @@ int main(int argc, char **argv) {
   double *od = calloc((size_t)n_over, sizeof *od), *ol = calloc((size_t)n_over, sizeof *ol),
          *os = calloc((size_t)n_over, sizeof *os);
   double med_d = NAN, med_l = NAN, med_s = NAN, dir_d = NAN, dir_l = NAN;
-  if (!rc) {
+  if (!rc && want[2]) {
     printf("\n[2] overhead: MATCH through the daemon (1 client) vs sm_match in-process\n");
     sm_client *c = NULL;
     if (!od || !ol || !os || connect_client(dA.addr, &c)) rc = 1;
@@ -613,7 +785,7 @@ int main(int argc, char **argv) {
   /* ---- 4. pool vs BLAS threads (reuses the data dir: bases load from disk) ---- */
   daemon_proc dB = {0};
   double emul_pool = NAN, emul_blas = NAN;
-  if (!rc) {
+  if (!rc && want[4]) {
     printf("\n[4] pool vs BLAS threads: daemon --threads 1 with OPENBLAS_NUM_THREADS=2\n");
     if (daemon_start(&dB, tmpA, dataA, 1, "2") || warm_up(dB.addr, &in, 0)) rc = 1;
     for (int k = 1; k < 3 && !rc; k++)
@@ -632,6 +804,7 @@ int main(int argc, char **argv) {
   double cold[16], warm[16 * 5], cold_prep[16];
   int nc = 0, nw = 0;
   if (n_cold > 16) n_cold = 16;
+  if (!want[3]) n_cold = 0;
   if (!rc && n_cold) printf("\n[3] cold PUT+MATCH (new data dir) vs warm MATCH\n");
   for (int i = 0; !rc && i < n_cold; i++) {
     char tmpC[256], dataC[300];
@@ -672,6 +845,39 @@ int main(int argc, char **argv) {
   if (!keep) rm_tree(tmpA);
   else printf("kept %s\n", tmpA);
 
+  /* ---- 5. PREPARE throughput, 1 vs 2 workers ---- */
+  double pr1[16], pr2[16], ps1[16], ps2[16], prep_ratio = NAN, prep_r1 = NAN, prep_r2 = NAN;
+  int np = 0;
+  if (prep_runs > 16) prep_runs = 16;
+  shape_set ss;
+  memset(&ss, 0, sizeof ss);
+  if (!rc && want[5]) {
+    if (load_shape_set(&ss, n_prep, &err)) {
+      fprintf(stderr, "prepare phase: %s\n", err.msg);
+      rc = 1;
+    } else {
+      printf("\n[5] PREPARE throughput: %d distinct shapes (%s .. %s), cold, daemon with 1 "
+             "and 2 workers (as many clients)\n", ss.n, ss.name[0], ss.name[ss.n - 1]);
+    }
+    for (int i = 0; !rc && i < prep_runs; i++) {
+      pr1[np] = prepare_round(&ss, 1, &ps1[np]);
+      pr2[np] = prepare_round(&ss, 2, &ps2[np]);
+      if (isnan(pr1[np]) || isnan(pr2[np])) {
+        rc = 1;
+        break;
+      }
+      printf("  run %d: 1 worker %.3f shapes/s (server %.2f s/shape), 2 workers %.3f "
+             "shapes/s (server %.2f s/shape): x%.2f\n",
+             i + 1, pr1[np], ps1[np], pr2[np], ps2[np], pr2[np] / pr1[np]);
+      fflush(stdout);
+      np++;
+    }
+    if (np) {
+      prep_r1 = median(pr1, np), prep_r2 = median(pr2, np), prep_ratio = prep_r2 / prep_r1;
+    }
+  }
+  for (int i = 0; i < ss.n; i++) free(ss.draco[i]);
+
   load_string(load1, sizeof load1);
 
   /* ---- table ---- */
@@ -694,6 +900,9 @@ int main(int argc, char **argv) {
            "x%.0f\n",
            median(cold, nc), nc, 1e3 * median(warm, nw), nw,
            median(cold, nc) / median(warm, nw));
+  if (np)
+    printf("PREPARE throughput: 1 worker %.3f shapes/s, 2 workers %.3f shapes/s (medians of "
+           "%d) -> x%.2f (target >= 1.8)\n", prep_r1, prep_r2, np, prep_ratio);
   const char *faster = NULL;
   for (int k = 1; k < 3; k++) {
     const row *a = find_row("warm", "MATCH", NCL[k]), *b = find_row("blas", "MATCH", NCL[k]);
@@ -735,6 +944,9 @@ int main(int argc, char **argv) {
       fjson_num(f, "warm_match_s", nw ? median(warm, nw) : NAN);
       fjson_num(f, "inprocess_2x1blas_per_s", emul_pool);
       fjson_num(f, "inprocess_1x2blas_per_s", emul_blas);
+      fjson_num(f, "prepare_1worker_per_s", prep_r1);
+      fjson_num(f, "prepare_2workers_per_s", prep_r2);
+      fjson_num(f, "prepare_ratio", prep_ratio);
       fprintf(f, "  \"end\": null\n}\n");
       fclose(f);
     }

@@ -38,6 +38,15 @@
 #include <string.h>
 #include <time.h>
 
+/* OpenMP's switch, reached through CHOLMOD: libcholmod links libgomp when it was built
+ * with OpenMP, and a weak reference finds it there without making OpenMP a build
+ * dependency of ours (NULL when CHOLMOD has no OpenMP: nothing to turn off). */
+extern void omp_set_max_active_levels(int) __attribute__((weak));
+
+void sm_eigs_openmp_off(void) {
+  if (omp_set_max_active_levels) omp_set_max_active_levels(0);
+}
+
 double sm_now(void) {
   struct timespec ts;
   clock_gettime(CLOCK_MONOTONIC, &ts);

@@ -58,6 +58,16 @@ typedef struct sm_eigs_stats {
 int sm_eigs_smallest(const sm_csc *A, const double *D, const sm_eigs_opts *o, double *evals,
                      double *evecs, sm_eigs_stats *st, sm_error *err);
 
+/* Process-wide, for programs that bound their own threads (the daemon's pool, sm_prepare's
+ * thread budget, the benchmarks): turns OpenMP parallel regions off, so each runs on the
+ * thread that opens it. Why: CHOLMOD's numeric factorization opens regions of
+ * CHOLMOD_OMP_NUM_THREADS = 4 threads (fixed when Debian built it) whatever the caller
+ * asked, so two factorizations at once put 8 threads on the cores, which then wait on each
+ * other at every region's barrier. Measured on homerA elastic (load ~4, 2 cores): factor
+ * 0.21-0.26 s with the teams, 0.11-0.18 s without. Call once at start-up, before other
+ * threads start; the rest of this module keeps no global state. */
+void sm_eigs_openmp_off(void);
+
 /* Monotonic clock in seconds (used by timing splits across core/). */
 double sm_now(void);
 

@@ -8,6 +8,7 @@
 #include <sys/eventfd.h>
 #include <unistd.h>
 
+#include "sm_eigs.h"
 #include "sm_srv_metrics.h"
 
 struct sm_pool {
@@ -56,6 +57,7 @@ static void *worker(void *arg) {
 }
 
 int sm_pool_create(int nthreads, int queue_cap, sm_pool **out) {
+  sm_eigs_openmp_off(); /* process-wide, before any worker exists (sm_srv_pool.h) */
   *out = NULL;
   sm_pool *p = calloc(1, sizeof *p);
   if (!p) return -ENOMEM;

@@ -10,8 +10,10 @@
  *   - sm_pool_post(msg) may be called from any thread; it appends msg to the done list and
  *     makes the eventfd (sm_pool_fd) readable. The loop thread calls sm_pool_take to get
  *     the whole list in posting order (FIFO), after reading the eventfd.
- *   - Each worker calls openblas_set_num_threads(1) once at start: the pool is the only
- *     parallelism, so BLAS must not oversubscribe the cores.
+ *   - Each worker calls openblas_set_num_threads(1) once at start, and sm_pool_create turns
+ *     OpenMP parallel regions off for the process (sm_eigs_openmp_off: CHOLMOD's
+ *     factorization would open teams of 4 threads per worker): the pool is the only
+ *     parallelism, so neither may oversubscribe the cores.
  *   - sm_pool_destroy stops the workers after the queue is empty (queued jobs still run:
  *     the caller cancels them first if it wants them short) and joins them.
  *   Locks: mu (queue) and done_mu (completion list); never nested.
