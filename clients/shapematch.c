@@ -56,7 +56,7 @@ static int usage(FILE *f) {
           "  match A B [--basis elastic|lb|hybrid] [--init sinkhorn|nn] [-k K1] [--k0 K0]\n"
           "        [--step S] [--eta E] [--landmarks FILE] [--init-map FILE] [-o MAP.txt]\n"
           "        [--refine-sinkhorn LEVELS] [--yx MAP_BA.txt] [--fmap C.txt] [--multi-start]\n"
-          "        [--tips off|doubtful|always] [--multires auto|on|off]\n"
+          "        [--tips off|doubtful|always] [--multires auto|on|off] [--coarse-nv N]\n"
           "        [--json] [--ply-out PREFIX] [--png-out FILE.png] [--view AZ,EL] [--size W,H]\n"
           "        dense point map from A to B: line i of MAP.txt = vertex of B (0-based, B's\n"
           "        numbering) matched to vertex i of A; -1 for vertices cleaning dropped.\n"
@@ -67,10 +67,12 @@ static int usage(FILE *f) {
           "        30,20; 960,480 pixels). --tips (local matching; the daemon uses\n"
           "        doubtful): the tip search, a landmark-free global start from the shapes'\n"
           "        tips (head, hands, feet), run when the map's confidence is doubtful\n"
-          "        (below 0.5, the default), always (slower), or off. --multires (local\n"
-          "        matching): match through coarse levels of about 5,000 vertices and carry\n"
-          "        the map back to every vertex: auto (default) when a mesh has more than\n"
-          "        20,000 vertices, on, or off (the full-resolution path)\n"
+          "        (below 0.5, the default), always (slower), or off. --multires: match\n"
+          "        through coarse levels of about N vertices (--coarse-nv, default 5,000;\n"
+          "        local only: the daemon sets its own, see shapematchd(8)) and carry the\n"
+          "        map back to every vertex: auto (default) when a mesh has more than\n"
+          "        20,000 vertices, on, or off (the full-resolution path); with a server,\n"
+          "        on and off need protocol version 3\n"
           "  render A B --map MAP.txt [-o OUT.png] [--ply-out PREFIX] [--view AZ,EL]\n"
           "        [--size W,H]\n"
           "        the same pictures of a map file that match wrote\n"
@@ -334,7 +336,7 @@ static int parse_match_opt(int argc, char **argv, int *i, match_args *m) {
   static const char *const valued[] = {"--basis", "--init", "-k", "--k0", "--step",
                                        "--refine-sinkhorn", "--eta", "--landmarks",
                                        "--init-map", "-o", "--yx", "--fmap", "--tips", "--multires",
-                                       NULL};
+                                       "--coarse-nv", NULL};
   int known = 0;
   for (int j = 0; valued[j]; j++) known |= !strcmp(a, valued[j]);
   if (!known) return 0;
@@ -367,6 +369,12 @@ static int parse_match_opt(int argc, char **argv, int *i, match_args *m) {
     m->ro.mode = !strcmp(v, "auto") ? SM_MULTIRES_AUTO : !strcmp(v, "on") ? SM_MULTIRES_ON
                  : !strcmp(v, "off") ? SM_MULTIRES_OFF : -1;
     if (m->ro.mode < 0) return -1;
+    m->co.multires = m->ro.mode; /* the same enum on the wire (sm_client_match_opts) */
+  } else if (!strcmp(a, "--coarse-nv")) {
+    char *end;
+    long nv = strtol(v, &end, 10);
+    if (*end || nv < 200 || nv > 10000000) return -1;
+    m->ro.coarse_nv = (int32_t)nv;
   }
   return 1;
 }

@@ -365,6 +365,11 @@ static int send_req(sm_client *c, uint8_t op, const void *m, uint32_t *rid,
       (uint64_t)n - SM_PROTO_HEADER_LEN > c->hello.max_payload)
     return seterr(err, SM_CLIENT_ELIMIT, "%s request of %td bytes, server accepts %u", sm_proto_op_name(op),
                   n - SM_PROTO_HEADER_LEN, c->hello.max_payload);
+  if (op == SM_OP_MATCH && c->version < SM_PROTO_VERSION_MULTIRES &&
+      (((const sm_proto_match_req *)m)->flags & (SM_MATCH_F_MULTIRES | SM_MATCH_F_DIRECT)))
+    return seterr(err, SM_CLIENT_ELIMIT, "the server speaks protocol version %u: choosing the "
+                  "multi-resolution or the direct path of MATCH needs version %d",
+                  c->version, SM_PROTO_VERSION_MULTIRES);
   uint8_t small[512], *buf = (size_t)n <= sizeof small ? small : malloc((size_t)n);
   if (!buf) return seterr(err, SM_CLIENT_ENOMEM, "request of %td bytes", n);
   enc_req(buf, (size_t)n, &h, op, m);
@@ -980,6 +985,10 @@ static int fill_match(uint8_t op, const uint8_t *x, const uint8_t *y, const sm_c
   }
   if (o->multi_start == 1) fl |= SM_MATCH_F_MULTI_START;
   if (o->multi_start == 0) fl |= SM_MATCH_F_SINGLE_START;
+  if (o->multires < 0 || o->multires > 2)
+    return seterr(err, SM_CLIENT_EINVAL, "multires must be 0 (server default), 1 (on) or 2 (off)");
+  if (op == SM_OP_MATCH && o->multires == 1) fl |= SM_MATCH_F_MULTIRES;
+  if (op == SM_OP_MATCH && o->multires == 2) fl |= SM_MATCH_F_DIRECT;
   if (o->sinkhorn_levels >= 0) {
     fl |= SM_MATCH_F_SINKHORN_LEVELS;
     m->sinkhorn_levels = (uint16_t)o->sinkhorn_levels;

@@ -1,7 +1,10 @@
 /* sm_client: a blocking client for the shapematch daemon (protocol/PROTOCOL.md, versions 1
- * and 2: it offers both and speaks the one the server chooses).
+ * to 3: it offers them all and speaks the one the server chooses).
  *
  * Contract
+ *   Versions. The client offers protocol versions 1..3. Against an older server, what a
+ *     later version added is absent (a MATCH's confidence before 2) or refused before
+ *     sending (MATCH's multires choice before 3: SM_CLIENT_ELIMIT, naming the versions).
  *   Connection. sm_client_connect opens a TCP (or Unix, "unix:/path") connection and does
  *     the HELLO exchange; sm_client_close sends nothing and frees everything. A client is a
  *     single connection with its own buffers: use one per thread (no call may run on the
@@ -196,6 +199,9 @@ typedef struct sm_client_match_opts {
   uint32_t n_init_map;
   int want_yx, want_fmap, want_distance; /* MATCH only */
   uint32_t deadline_ms; /* 0 = none */
+  int multires;         /* MATCH only: 0 the server default (by size, as the local match),
+                           1 multi-resolution, 2 direct (enum sm_multires_mode); 1 and 2
+                           need a server of protocol version >= 3 */
 } sm_client_match_opts;
 void sm_client_match_opts_default(sm_client_match_opts *o);
 

@@ -611,6 +611,7 @@ static int match_req_ok(uint8_t opcode, const sm_proto_match_req *m) {
   if (m->basis > 3 || m->init > 2 || (m->flags & ~known) || !eta_ok(m->eta)) return 0;
   if (m->k0 && m->k1 && m->k0 > m->k1) return 0;
   if ((m->flags & SM_MATCH_F_SINGLE_START) && (m->flags & SM_MATCH_F_MULTI_START)) return 0;
+  if ((m->flags & SM_MATCH_F_MULTIRES) && (m->flags & SM_MATCH_F_DIRECT)) return 0;
   if (!(m->flags & SM_MATCH_F_SINKHORN_LEVELS) && m->sinkhorn_levels) return 0;
   if (m->landmarks.count % 2) return 0;
   if ((m->landmarks.count && !m->landmarks.v && !m->landmarks.le) ||

@@ -34,7 +34,9 @@
  *     (HELLO frames are always version 1; the encoders of HELLO refuse any other). Only
  *     the MATCH response's layout differs between versions, so only its encoder and
  *     decoder take the negotiated version as an argument; every other layout is the same
- *     in all versions the codec speaks.
+ *     in all versions the codec speaks. MATCH's request flags MULTIRES and DIRECT exist
+ *     from version 3 on; the codec accepts them whatever the version, and the peer that
+ *     knows the connection's version refuses them below 3 (the server: BAD_REQUEST).
  *   Errors: negative SM_PROTO_E* codes, sm_proto_strerror; sm_proto_status_for_error maps
  *   a parse/decode error to the status the peer should receive.
  */
@@ -46,9 +48,10 @@
 
 #define SM_PROTO_HEADER_LEN 24
 #define SM_PROTO_VERSION_MIN 1
-#define SM_PROTO_VERSION_MAX 2
+#define SM_PROTO_VERSION_MAX 3
 #define SM_PROTO_VERSION_HELLO 1 /* the header version of every HELLO frame (both ways) */
 #define SM_PROTO_VERSION_CONFIDENCE 2 /* first version whose MATCH response has confidence */
+#define SM_PROTO_VERSION_MULTIRES 3   /* first version with MATCH's MULTIRES / DIRECT flags */
 #define SM_PROTO_ID_LEN 32     /* shape id = SHA-256 of the Draco bytes */
 #define SM_PROTO_MAGIC0 0x89
 #define SM_PROTO_MAGIC1 'S'
@@ -273,7 +276,9 @@ typedef struct sm_proto_prepare_resp {
  * values of core/sm_match.h (lb 1, elastic 2, hybrid 3; nn 1, sinkhorn 2). */
 /* SINGLE_START / MULTI_START force multi-start off / on (neither: server default; both:
  * invalid). SINKHORN_LEVELS: sinkhorn_levels is given (0 = variant off); without it the
- * field must be 0 and the server default applies. */
+ * field must be 0 and the server default applies. MULTIRES / DIRECT (MATCH only, version
+ * >= 3) force the multi-resolution path (core/sm_multires.h) or the direct one (neither:
+ * the server default, automatic by size; both: invalid). */
 enum {
   SM_MATCH_F_WANT_YX = 1u << 0,
   SM_MATCH_F_WANT_FMAP = 1u << 1,
@@ -281,7 +286,9 @@ enum {
   SM_MATCH_F_WANT_DISTANCE = 1u << 3,
   SM_MATCH_F_MULTI_START = 1u << 4,
   SM_MATCH_F_SINKHORN_LEVELS = 1u << 5,
-  SM_MATCH_F_KNOWN_ = 0x3Fu,
+  SM_MATCH_F_MULTIRES = 1u << 6,
+  SM_MATCH_F_DIRECT = 1u << 7,
+  SM_MATCH_F_KNOWN_ = 0xFFu,
   SM_DISTANCE_F_KNOWN_ =
       SM_MATCH_F_SINGLE_START | SM_MATCH_F_MULTI_START | SM_MATCH_F_SINKHORN_LEVELS
 };

@@ -35,6 +35,7 @@ static void usage(FILE *f) {
           "                   [--max-faces N] [--max-k K] [--default-k K]\n"
           "                   [--max-batch-items N] [--max-query-k N]\n"
           "                   [--prepare-timeout-ms MS] [--max-components N]\n"
+          "                   [--multires-coarse-nv N]\n"
           "  --config FILE reads 'key = value' lines, the keys being the long flags without\n"
           "    '--' (port = 7878, data-dir = /var/lib/shapematch, ...); '#' starts a comment;\n"
           "    an unknown key or a bad value is an error naming the line; flags given on the\n"
@@ -49,6 +50,8 @@ static void usage(FILE *f) {
           "  --prepare-timeout-ms bounds the preparation (cleaning, bases, descriptors) of\n"
           "    one shape (default 300000; 0 = none): past it the request fails with\n"
           "    LIMIT_EXCEEDED naming the shape;\n"
+          "  --multires-coarse-nv: vertices of the coarse level of MATCH's multi-resolution\n"
+          "    path (default 5000, as the local shapematch match; PROTOCOL.md 5.7);\n"
           "  --max-components: PUT_SHAPE refuses a mesh with more connected components after\n"
           "    cleaning (default 64; each component needs its own rigid modes);\n"
           "  --token may also come from $SHAPEMATCH_TOKEN (keeps it out of ps), or from the\n"
@@ -137,6 +140,7 @@ static int apply_opt(const char *key, const char *v, sm_srv_config *c, const cha
   NUM("max-query-k", 1, 65535, c->max_query_k)
   NUM("prepare-timeout-ms", 0, 86400000, c->prepare_timeout_ms)
   NUM("max-components", 1, 1000000, c->max_components)
+  NUM("multires-coarse-nv", 200, 10000000, c->multires_coarse_nv)
   else {
     if (src->file) fprintf(stderr, "shapematchd: %s:%d: unknown key '%s'\n", src->file, src->line, key);
     else fprintf(stderr, "shapematchd: unknown flag --%s\n", key);

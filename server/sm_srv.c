@@ -4,6 +4,8 @@
  * point (and a test or a fuzz harness can link the modules without main). */
 #include "sm_srv.h"
 
+#include "sm_multires.h"
+
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -44,4 +46,5 @@ void sm_srv_config_default(sm_srv_config *c) {
   c->default_k = 100;
   c->prepare_timeout_ms = 300000;
   c->max_components = 64;
+  c->multires_coarse_nv = SM_MULTIRES_COARSE_NV; /* as the local match */
 }

@@ -57,6 +57,8 @@ typedef struct sm_srv_config {
   int default_k;            /* server default basis size (PROTOCOL.md: 100) */
   uint32_t prepare_timeout_ms; /* bound on one shape's preparation; 0 = none */
   uint32_t max_components;  /* PUT refuses meshes with more connected components */
+  int multires_coarse_nv;   /* MATCH's multi-resolution path: vertices of the coarse level
+                               (default SM_MULTIRES_COARSE_NV) */
   uint8_t token[256];
   size_t token_len;
   int has_token;

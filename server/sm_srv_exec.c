@@ -413,6 +413,60 @@ static int translate(const sm_proto_match_req *q, const sm_shape *x, const sm_sh
   return rc;
 }
 
+/* MATCH's path (PROTOCOL.md 5.7): forced by MULTIRES / DIRECT (version >= 3), else chosen
+ * by the stored input vertex counts as the local match chooses (sm_multires_wanted). A
+ * shape not stored leaves the direct path, whose acquire reports NOT_FOUND. */
+static int multires_choice(sm_job *j, const sm_proto_match_req *q, int *on, result *r) {
+  uint16_t f = q->flags & (SM_MATCH_F_MULTIRES | SM_MATCH_F_DIRECT);
+  *on = 0;
+  if (f && j->version < SM_PROTO_VERSION_MULTIRES)
+    return fail(r, SM_ST_BAD_REQUEST, 0, "MATCH flags MULTIRES and DIRECT need protocol "
+                "version %d; this connection speaks %u", SM_PROTO_VERSION_MULTIRES, j->version);
+  sm_multires_opts o;
+  sm_multires_opts_default(&o);
+  o.mode = (f & SM_MATCH_F_MULTIRES) ? SM_MULTIRES_ON : f ? SM_MULTIRES_OFF : SM_MULTIRES_AUTO;
+  uint32_t nx = 0, ny = 0, nf;
+  int prepared;
+  if (o.mode == SM_MULTIRES_AUTO && (!sm_store_has(j->srv->store, q->x, &nx, &nf, &prepared) ||
+                                     !sm_store_has(j->srv->store, q->y, &ny, &nf, &prepared)))
+    return 0;
+  *on = sm_multires_wanted(&o, (int32_t)nx, (int32_t)ny);
+  return 0;
+}
+
+/* sm_multires_match on the two coarse levels, its result put in sm_match's form as the
+ * local match does: the fine maps and their scores, the coarse level's C, start and tips.
+ * With want_dist, *d is the distance of the coarse level's maps. */
+static int match_multires(sm_job *j, const sm_multires_shape *x, const sm_multires_shape *y,
+                          const sm_match_opts *mo, int want_dist, sm_match_result *mr,
+                          sm_distance_parts *d, uint64_t *t_dist, sm_error *err) {
+  sm_multires_opts ro;
+  sm_multires_opts_default(&ro);
+  ro.mode = SM_MULTIRES_ON;
+  ro.coarse_nv = j->srv->cfg.multires_coarse_nv;
+  sm_multires_result res;
+  int e = sm_multires_match(x, y, mo, &ro, &res, err);
+  if (e) return e;
+  if (want_dist) {
+    uint64_t t0 = sm_srv_now_ns();
+    e = sm_shape_distance(x->coarse, y->coarse, res.coarse.T, res.coarse.T_yx, d, err);
+    *t_dist = (sm_srv_now_ns() - t0) / 1000;
+  }
+  *mr = res.coarse;
+  free(mr->T);
+  free(mr->T_yx);
+  mr->T = res.T;
+  mr->T_yx = res.T_yx;
+  mr->nx = res.nx;
+  mr->ny = res.ny;
+  mr->orientation = res.orientation;
+  mr->confidence = res.confidence;
+  mr->continuity = res.continuity;
+  mr->cycle = res.cycle;
+  mr->dirichlet = res.dirichlet;
+  return e;
+}
+
 static int op_match(sm_job *j, uint8_t opcode, const uint8_t *p, size_t n, result *r) {
   sm_proto_match_req q;
   const char *name = opcode == SM_OP_MATCH ? "MATCH" : "DISTANCE";
@@ -425,23 +479,31 @@ static int op_match(sm_job *j, uint8_t opcode, const uint8_t *p, size_t n, resul
   int want_dist = opcode == SM_OP_DISTANCE || (q.flags & SM_MATCH_F_WANT_DISTANCE);
   mo.want_yx = want_dist || (q.flags & SM_MATCH_F_WANT_YX);
   if (opcode == SM_OP_DISTANCE) sm_distance_match_opts(&mo); /* MATCH keeps its mirror check */
+  int multires = 0;
+  if (opcode == SM_OP_MATCH && multires_choice(j, &q, &multires, r)) return -1;
+  if (multires) key = sm_store_key_multires(&key, j->srv->cfg.multires_coarse_nv);
   pair_ctx c;
   memset(&c, 0, sizeof c);
   sm_match_result mr;
   memset(&mr, 0, sizeof mr);
   rc = acquire_pair(j, q.x, q.y, &key, &c, r);
-  const sm_shape *x = c.px ? sm_prepared_shape(c.px) : NULL;
-  const sm_shape *y = c.py ? sm_prepared_shape(c.py) : NULL;
+  /* multi-resolution: x and y are views of the fine meshes (numbering, the response) */
+  const sm_multires_shape *mx = multires && c.px ? sm_prepared_multires(c.px) : NULL;
+  const sm_multires_shape *my = multires && c.py ? sm_prepared_multires(c.py) : NULL;
+  sm_shape vx = {.mesh = mx ? mx->mesh : NULL}, vy = {.mesh = my ? my->mesh : NULL};
+  const sm_shape *x = multires ? (mx ? &vx : NULL) : c.px ? sm_prepared_shape(c.px) : NULL;
+  const sm_shape *y = multires ? (my ? &vy : NULL) : c.py ? sm_prepared_shape(c.py) : NULL;
   if (!rc) rc = translate(&q, x, y, &mo, &c, r);
   sm_error err;
   sm_error_clear(&err);
-  if (!rc) {
-    int e = sm_match(x, y, &mo, &mr, &err);
-    if (e) rc = fail_core(r, j, e, &err, name);
-  }
   sm_distance_parts d = {0, 0, 0, 0, -1};
   uint64_t t_dist = 0;
-  if (!rc && want_dist) {
+  if (!rc) {
+    int e = multires ? match_multires(j, mx, my, &mo, want_dist, &mr, &d, &t_dist, &err)
+                     : sm_match(x, y, &mo, &mr, &err);
+    if (e) rc = fail_core(r, j, e, &err, name);
+  }
+  if (!rc && want_dist && !multires) {
     uint64_t t0 = sm_srv_now_ns();
     int e = sm_shape_distance(x, y, mr.T, mr.T_yx, &d, &err);
     t_dist = (sm_srv_now_ns() - t0) / 1000;

@@ -28,7 +28,8 @@
 enum { V_COMPUTING = 1, V_READY = 2 };
 
 struct sm_prepared {
-  sm_shape *shape;
+  sm_shape *shape;          /* full-resolution key */
+  sm_multires_shape *mr;    /* coarse-level key */
   int refs; /* under st->mu */
   size_t bytes;
 };
@@ -99,7 +100,8 @@ static void unlink_entry(sm_store *st, entry *e) {
 }
 
 static int key_eq(const sm_store_key *a, const sm_store_key *b) {
-  if (a->nspec != b->nspec) return 0;
+  if (a->nspec != b->nspec || a->coarse_nv != b->coarse_nv) return 0;
+  if (a->coarse_nv && memcmp(&a->max_aspect, &b->max_aspect, sizeof a->max_aspect)) return 0;
   for (int i = 0; i < a->nspec; i++)
     if (!sm_basis_spec_eq(&a->spec[i], &b->spec[i])) return 0;
   return 1;
@@ -109,6 +111,15 @@ sm_store_key sm_store_key_make(int k_lb, int k_el, double eta) {
   sm_store_key k;
   memset(&k, 0, sizeof k);
   k.nspec = sm_prep_default_specs(k.spec, k_lb, k_el, eta);
+  return k;
+}
+
+sm_store_key sm_store_key_multires(const sm_store_key *full, int32_t coarse_nv) {
+  sm_store_key k = *full;
+  sm_multires_opts mo;
+  sm_multires_opts_default(&mo);
+  k.coarse_nv = coarse_nv;
+  k.max_aspect = mo.max_aspect;
   return k;
 }
 
@@ -147,11 +158,19 @@ static int entry_file_intact(const sm_store *st, const entry *e) {
   return file_sig_of(p, &g) == 0 && !memcmp(&g, &e->sig, sizeof g);
 }
 
-static void basis_path(const sm_store *st, const char *hex, const sm_basis_spec *spec,
-                       char *out, size_t n) {
+/* level: "" at full resolution, else "mr<nv>.a<bits>." (level_tag) */
+static void basis_path(const sm_store *st, const char *hex, const char *level,
+                       const sm_basis_spec *spec, char *out, size_t n) {
   char name[128];
   sm_basis_spec_name(spec, name, sizeof name);
-  snprintf(out, n, "%s/bases/%s.%s.v%u.smb", st->dir, hex, name, SM_BASIS_FORMAT_VERSION);
+  snprintf(out, n, "%s/bases/%s.%s%s.v%u.smb", st->dir, hex, level, name, SM_BASIS_FORMAT_VERSION);
+}
+
+static void level_tag(const sm_store_key *key, char *out, size_t n) {
+  uint64_t bits;
+  memcpy(&bits, &key->max_aspect, sizeof bits);
+  if (key->coarse_nv) snprintf(out, n, "mr%d.a%016llx.", key->coarse_nv, (unsigned long long)bits);
+  else snprintf(out, n, "%s", "");
 }
 
 static void meta_path(const sm_store *st, const char *hex, char *out, size_t n) {
@@ -278,9 +297,23 @@ static void remove_stale_temp(const sm_store *st, const char *subdir, const char
   unlock_name(fd);
 }
 
+static int prepared_nbases(const sm_prepared *p) {
+  return sm_shape_nbases(p->shape ? p->shape : p->mr->coarse);
+}
+
+/* Approximate bytes of a multi-resolution shape: its coarse shape, and per fine vertex the
+ * mesh (3 doubles, index maps), the mass and the location (3 ints, 3 weights, owner). */
+static size_t multires_bytes(const sm_multires_shape *mr) {
+  size_t per_v = 3 * sizeof(double) + 2 * sizeof(int32_t) + sizeof(double) +
+                 3 * sizeof(int32_t) + 3 * sizeof(double) + sizeof(int32_t);
+  return sm_shape_bytes(mr->coarse) + (size_t)mr->mesh->nv * per_v +
+         (size_t)mr->mesh->nf * 3 * sizeof(int32_t);
+}
+
 static void prepared_unref_locked(sm_prepared *p) {
   if (--p->refs == 0) {
     sm_shape_destroy(p->shape);
+    sm_multires_shape_destroy(p->mr);
     free(p);
   }
 }
@@ -312,7 +345,7 @@ static void var_evict_locked(sm_store *st, variant *v) {
   lru_unlink(st, v);
   var_unlink(v->e, v);
   st->s.cache_bytes -= v->p->bytes;
-  st->s.bases_cached -= (uint64_t)sm_shape_nbases(v->p->shape);
+  st->s.bases_cached -= (uint64_t)prepared_nbases(v->p);
   prepared_unref_locked(v->p);
   free(v);
 }
@@ -745,7 +778,7 @@ int sm_store_has(sm_store *st, const uint8_t id[32], uint32_t *nv, uint32_t *nf,
     struct stat sb;
     int ok = 1;
     for (int i = 0; ok && i < st->def.nspec; i++) {
-      basis_path(st, hex, &st->def.spec[i], p, sizeof p);
+      basis_path(st, hex, "", &st->def.spec[i], p, sizeof p);
       ok = stat(p, &sb) == 0;
     }
     *prepared = ok;
@@ -836,6 +869,7 @@ static uint64_t us_since(uint64_t t0) { return (sm_srv_now_ns() - t0) / 1000; }
 typedef struct prep_io {
   sm_store *st;
   const char *hex;
+  const char *level; /* level_tag of the key */
   int (*cancel)(void *);
   void *ud;
   sm_basis_spec held[SM_PREP_MAX_BASES]; /* specs whose lock is held ... */
@@ -871,7 +905,7 @@ static int io_load(void *ud, const sm_basis_spec *spec, const sm_mesh *m, sm_bas
                    sm_error *err) {
   prep_io *io = ud;
   char path[PATHBUF];
-  basis_path(io->st, io->hex, spec, path, sizeof path);
+  basis_path(io->st, io->hex, io->level, spec, path, sizeof path);
   int fd = lock_name(io->st, strrchr(path, '/') + 1, 0, io->cancel, io->ud);
   if (fd < 0 && errno == ECANCELED)
     return sm_error_set(err, SM_ECANCELED, "cancelled while another daemon computed the basis");
@@ -891,7 +925,7 @@ static int io_load(void *ud, const sm_basis_spec *spec, const sm_mesh *m, sm_bas
 static void io_save(void *ud, const sm_basis_spec *spec, const sm_basis *b) {
   prep_io *io = ud;
   char path[PATHBUF];
-  basis_path(io->st, io->hex, spec, path, sizeof path);
+  basis_path(io->st, io->hex, io->level, spec, path, sizeof path);
   sm_error serr;
   if (b) count(io->st, &io->st->s.bases_computed);
   if (b && sm_basis_save(b, path, &serr))
@@ -933,7 +967,9 @@ static int compute_variant(sm_store *st, const char *hex, const sm_store_key *ke
   rc = sm_draco_decode(buf, len, &st->lim, &raw, err);
   free(buf);
   uint64_t t_decode = us_since(t0);
-  prep_io io = {.st = st, .hex = hex, .cancel = cancel, .ud = ud};
+  char level[64];
+  level_tag(key, level, sizeof level);
+  prep_io io = {.st = st, .hex = hex, .level = level, .cancel = cancel, .ud = ud};
   sm_prep_hooks hooks = {io_load, io_save, &io};
   sm_prep_opts po;
   sm_prep_opts_default(&po);
@@ -946,7 +982,19 @@ static int compute_variant(sm_store *st, const char *hex, const sm_store_key *ke
   sm_prep_info pi;
   memset(&pi, 0, sizeof pi);
   sm_shape *s = NULL;
-  if (!rc) rc = sm_prepare(raw, &po, &s, &pi, err);
+  sm_multires_shape *mr = NULL;
+  if (!rc && key->coarse_nv) {
+    sm_multires_opts mo;
+    sm_multires_opts_default(&mo);
+    mo.mode = SM_MULTIRES_ON;
+    mo.coarse_nv = key->coarse_nv;
+    mo.max_aspect = key->max_aspect;
+    rc = sm_prepare_multires(raw, &po, &mo, &mr, &pi, err);
+    if (!rc) /* the fine level's cleaning, decimation and location count as cleaning */
+      pi.t_clean += mr->t_clean + mr->t_decimate + mr->t_locate;
+  } else if (!rc) {
+    rc = sm_prepare(raw, &po, &s, &pi, err);
+  }
   sm_mesh_destroy(raw);
   info->t_clean_us = t_decode + (uint64_t)(pi.t_clean * 1e6);
   for (int i = 0; i < key->nspec; i++) info->t_basis_us[i] = (uint64_t)(pi.t_basis[i] * 1e6);
@@ -960,7 +1008,8 @@ static int compute_variant(sm_store *st, const char *hex, const sm_store_key *ke
     return sm_error_set(err, SM_ENOMEM, "store: out of memory");
   }
   p->shape = s;
-  p->bytes = sm_shape_bytes(s);
+  p->mr = mr;
+  p->bytes = s ? sm_shape_bytes(s) : multires_bytes(mr);
   *out = p;
   return SM_OK;
 }
@@ -1083,7 +1132,7 @@ int sm_store_acquire(sm_store *st, const uint8_t id[32], const sm_store_key *key
       e->vars = v;
       lru_push(st, v);
       st->s.cache_bytes += p->bytes;
-      st->s.bases_cached += (uint64_t)sm_shape_nbases(p->shape);
+      st->s.bases_cached += (uint64_t)prepared_nbases(p);
       *out = p;
       while (st->s.cache_bytes > st->budget && st->lru_tail && st->lru_tail != v) {
         st->s.evictions++;
@@ -1114,6 +1163,7 @@ void sm_store_release(sm_store *st, sm_prepared *p) {
 }
 
 const sm_shape *sm_prepared_shape(const sm_prepared *p) { return p->shape; }
+const sm_multires_shape *sm_prepared_multires(const sm_prepared *p) { return p->mr; }
 
 static int cmp_id(const void *a, const void *b) { return memcmp(a, b, 32); }
 

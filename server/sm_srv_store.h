@@ -11,6 +11,10 @@
  *     bases/<id-hex>.<spec>.v<format>.smb          one computed basis (sm_basis_save:
  *                                                  versioned, XXH3-checksummed); <spec> is
  *                                                  sm_basis_spec_name, e.g. el.k100.eta<bits>
+ *     bases/<id-hex>.mr<nv>.a<bits>.<spec>.v<format>.smb  a basis of the shape's coarse
+ *                                                  level (multi-resolution MATCH): decimated
+ *                                                  to <nv> vertices with aspect bound <bits>
+ *                                                  (the f64's bits in hex)
  *     Every file is written by sm_file_write_atomic (core/sm_basis_io.c: a unique temp
  *     name in the same directory, fsynced, renamed over its final name, the directory
  *     fsynced), so a crash leaves either the old state or the complete new file. At
@@ -23,7 +27,7 @@
  *     and the XXH3 hash of the cleaned mesh it belongs to); a file that fails is deleted,
  *     recomputed and rewritten (counted bases_corrupt), never served.
  *   Memory: an index of every stored shape (id, counts, size) and an LRU cache of
- *     prepared shapes keyed by (id, k_lb, k_elastic, eta), bounded by cache_bytes
+ *     prepared shapes keyed by (id, k_lb, k_elastic, eta, coarse level), bounded by cache_bytes
  *     (approximate bytes of the arrays). Evicting only drops the cache's reference: a
  *     worker holding a prepared shape (sm_store_acquire) keeps it until sm_store_release.
  *   Single-flight: a missing variant is inserted in state COMPUTING by the first worker,
@@ -72,10 +76,15 @@ enum {
 typedef struct sm_store sm_store;
 typedef struct sm_prepared sm_prepared;
 
-/* A prepared variant of a shape: the bases sm_prepare computes (sm_prepare.h). */
+/* A prepared variant of a shape: the bases sm_prepare computes (sm_prepare.h), at full
+ * resolution (coarse_nv = 0) or on the coarse level of sm_prepare_multires, decimated to
+ * coarse_nv vertices with aspect-ratio bound max_aspect (sm_multires_opts): the decimation
+ * parameters are part of the key, so levels made with other parameters never mix. */
 typedef struct sm_store_key {
   sm_basis_spec spec[SM_PREP_MAX_BASES];
   int nspec;
+  int32_t coarse_nv;  /* 0: full resolution */
+  double max_aspect;  /* with coarse_nv */
 } sm_store_key;
 
 typedef struct sm_store_prep_info {
@@ -89,6 +98,9 @@ typedef struct sm_store_prep_info {
 /* The key of the shipped preparation (sm_prep_default_specs: LB k_lb, elastic k_el with
  * eta when k_el > 0). */
 sm_store_key sm_store_key_make(int k_lb, int k_el, double eta);
+/* The same key on the coarse level of sm_multires (coarse_nv vertices, mo's other
+ * decimation parameters). */
+sm_store_key sm_store_key_multires(const sm_store_key *full, int32_t coarse_nv);
 /* k of the key's basis of kind, 0 if it has none. */
 int sm_store_key_k(const sm_store_key *key, int kind);
 /* Microseconds this call spent on the key's basis of kind (0 if none). */
@@ -140,7 +152,10 @@ int sm_store_acquire(sm_store *st, const uint8_t id[32], const sm_store_key *key
  * load anything), else 0. A hint: the answer may change right after. */
 int sm_store_cached(sm_store *st, const uint8_t id[32], const sm_store_key *key);
 void sm_store_release(sm_store *st, sm_prepared *p);
+/* The prepared shape of a full-resolution key (NULL for a coarse-level key) ... */
 const sm_shape *sm_prepared_shape(const sm_prepared *p);
+/* ... and the multi-resolution shape of a coarse-level key (NULL otherwise). */
+const sm_multires_shape *sm_prepared_multires(const sm_prepared *p);
 
 /* Snapshot of every stored id (malloc'd, 32 bytes each), after looking for shapes other
  * daemons stored or dropped in the shared directory (when shapes/ changed). */

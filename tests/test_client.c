@@ -186,7 +186,7 @@ static void srv_hello_v(peer *p, uint32_t max_inflight, uint16_t version) {
   if (!expect(p, SM_OP_HELLO, &f)) exit(1);
   CHECK(f.h.version == 1);
   REQUIRE(sm_proto_dec_hello_req(f.body, f.body_len, &m) == 0);
-  CHECK(m.min_version == 1 && m.max_version == 2);
+  CHECK(m.min_version == 1 && m.max_version == SM_PROTO_VERSION_MAX);
   sm_proto_hello_resp r = {version, 1 << 28, 1000000, 2000000, max_inflight, 64, 100, 300, 0, 0};
   sm_proto_header h = resp_hdr(f.h.request_id);
   SEND(p, sm_proto_enc_hello_resp(g_out, sizeof g_out, &h, &r));
@@ -244,7 +244,7 @@ static void srv_basic(peer *p, void *ud) {
   sm_proto_hello_req hr;
   REQUIRE(expect(p, SM_OP_HELLO, &f));
   REQUIRE(sm_proto_dec_hello_req(f.body, f.body_len, &hr) == 0);
-  CHECK(hr.min_version == 1 && hr.max_version == 2 && hr.max_response == 1u << 26);
+  CHECK(hr.min_version == 1 && hr.max_version == SM_PROTO_VERSION_MAX && hr.max_response == 1u << 26);
   CHECK(hr.token_len == 6 && !memcmp(hr.token, "s3cret", 6));
   CHECK(!memcmp(hr.affinity, k_affinity, 32));
   sm_proto_hello_resp r = {1, 1 << 28, 1000000, 2000000, 8, 64, 100, 300, 60000, 0};
@@ -1044,6 +1044,78 @@ static int json_confidence(const char *s, double *v) {
   return end != k;
 }
 
+/* The daemon's counter `name` (shapematch stats), or -1. */
+static long long daemon_stat(const char *dir, const char *cli, const char *srv, const char *name) {
+  char cmd[2048], path[700];
+  snprintf(cmd, sizeof cmd, "%s stats --server %s > %s/stat_now.txt 2>/dev/null", cli, srv, dir);
+  if (run(cmd)) return -1;
+  snprintf(path, sizeof path, "%s/stat_now.txt", dir);
+  char *s = slurp(path, NULL);
+  long long v = -1;
+  for (char *l = s; l && *l; l = strchr(l, '\n') ? strchr(l, '\n') + 1 : NULL) {
+    char k[64];
+    long long x;
+    if (sscanf(l, "%63s %lld", k, &x) == 2 && !strcmp(k, name)) v = x;
+  }
+  free(s);
+  return v;
+}
+
+/* MATCH through the multi-resolution path on the daemon (started with a coarse level of
+ * 600 vertices): twice, the second served from the cached coarse levels (STATS: nothing
+ * computed or loaded, two cache hits), both maps equal to the local multi-resolution map
+ * with the same coarse size; the coarse bases are on disk under names carrying the
+ * decimation parameters. 2,562-vertex blobs, so that 600 is a real decimation. */
+static void test_daemon_multires(const char *dir, const char *cli, const char *srv) {
+  char cmd[4096];
+  snprintf(cmd, sizeof cmd,
+           "cd %s && %s synth blob --subdiv 4 --seed 5 -o ma.off 2>/dev/null && "
+           "%s synth blob --subdiv 4 --seed 6 --stretch 1.2,1,0.9 -o mb.off 2>/dev/null && "
+           "%s encode ma.off -o ma.drc 2>/dev/null && %s encode mb.off -o mb.drc 2>/dev/null",
+           dir, cli, cli, cli, cli);
+  REQUIRE(run(cmd) == 0);
+  long long c0 = daemon_stat(dir, cli, srv, "bases_computed");
+  long long h[3], m[3], b[3];
+  for (int k = 0; k < 2; k++) {
+    h[k] = daemon_stat(dir, cli, srv, "cache_hits");
+    m[k] = daemon_stat(dir, cli, srv, "cache_misses");
+    b[k] = daemon_stat(dir, cli, srv, "bases_computed") + daemon_stat(dir, cli, srv, "bases_loaded");
+    snprintf(cmd, sizeof cmd, "cd %s && %s match ma.drc mb.drc --server %s --multires on -o mr_remote%d.txt "
+             "2> mr_remote%d.err", dir, cli, srv, k, k);
+    int rc = run(cmd);
+    CHECK_MSG(rc == 0, "multires match %d on the daemon: exit %d", k, rc);
+  }
+  h[2] = daemon_stat(dir, cli, srv, "cache_hits");
+  m[2] = daemon_stat(dir, cli, srv, "cache_misses");
+  b[2] = daemon_stat(dir, cli, srv, "bases_computed") + daemon_stat(dir, cli, srv, "bases_loaded");
+  CHECK_MSG(m[1] - m[0] == 2 && b[1] - b[0] == 4, "first multires MATCH: %lld misses, %lld bases "
+            "computed or loaded (want 2 and 4)", m[1] - m[0], b[1] - b[0]);
+  CHECK_MSG(h[2] - h[1] == 2 && m[2] == m[1] && b[2] == b[1], "second multires MATCH: %lld hits, "
+            "%lld misses, %lld bases (want 2, 0, 0)", h[2] - h[1], m[2] - m[1], b[2] - b[1]);
+  CHECK_MSG(daemon_stat(dir, cli, srv, "bases_computed") - c0 == 4, "%s", "coarse bases computed once");
+  snprintf(cmd, sizeof cmd, "cd %s && %s match ma.drc mb.drc --local --multires on --coarse-nv 600 "
+           "-o mr_local.txt 2> mr_local.err", dir, cli);
+  CHECK(run(cmd) == 0);
+  char p[3][700];
+  char *t[3];
+  for (int k = 0; k < 3; k++) {
+    snprintf(p[k], sizeof p[k], k < 2 ? "%s/mr_remote%d.txt" : "%s/mr_local.txt", dir, k);
+    t[k] = slurp(p[k], NULL);
+  }
+  CHECK(t[0] && t[1] && t[2]);
+  if (t[0] && t[1] && t[2]) {
+    size_t lines = 0;
+    for (const char *c = t[2]; *c; c++) lines += *c == '\n';
+    CHECK_MSG(lines == 2562, "local multires map: %zu lines", lines);
+    CHECK_MSG(!strcmp(t[0], t[2]), "%s", "the daemon's multires map differs from the local one");
+    CHECK_MSG(!strcmp(t[1], t[2]), "%s", "the cached multires map differs from the local one");
+  }
+  for (int k = 0; k < 3; k++) free(t[k]);
+  snprintf(cmd, sizeof cmd, "test $(ls %s/data/bases | grep -c '\\.mr600\\.a[0-9a-f]*\\.') = 4", dir);
+  CHECK_MSG(run(cmd) == 0, "%s", "the 4 coarse bases on disk, named by their decimation parameters");
+  fprintf(stderr, "daemon multires MATCH: computed once (4 coarse bases), then 2 cache hits; map = local --multires on\n");
+}
+
 static void test_daemon(void) {
   char dir[512], cmd[4096], log[600];
   snprintf(dir, sizeof dir, "%s/client_it_XXXXXX", SM_TEST_TMP);
@@ -1061,7 +1133,8 @@ static void test_daemon(void) {
   if (pid == 0) {
     int fd = open(log, O_WRONLY | O_CREAT | O_TRUNC, 0600);
     if (fd >= 0) dup2(fd, 2);
-    execl(SM_SERVER_BIN, SM_SERVER_BIN, "--port", "0", "--data-dir", data, (char *)NULL);
+    execl(SM_SERVER_BIN, SM_SERVER_BIN, "--port", "0", "--data-dir", data, "--multires-coarse-nv",
+          "600", (char *)NULL);
     _exit(127);
   }
   int port = 0, exited = 0;
@@ -1275,6 +1348,8 @@ static void test_daemon(void) {
     }
     free(pt);
   }
+
+  test_daemon_multires(dir, cli, srv);
 
   snprintf(cmd, sizeof cmd, "%s stats --server %s > %s/stats.txt 2>&1", cli, srv, dir);
   CHECK(run(cmd) == 0);

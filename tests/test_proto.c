@@ -10,7 +10,7 @@
  *     i.e. before a receiver would allocate), with the specific error;
  *   - malformed payloads: every truncation, trailing bytes, counts whose byte size would
  *     overflow 32 bits, out-of-range enums, reserved fields, disallowed opcodes;
- *   - versions: the catalogue's frames after HELLO carry version 2 (SM_PROTO_VERSION_MAX);
+ *   - versions: the catalogue's frames after HELLO carry the highest version (SM_PROTO_VERSION_MAX);
  *     the MATCH response in both layouts (version 1 is version 2 without the trailing
  *     confidence), each decoder refusing the other's, and a confidence that is NaN or
  *     outside [0, 1] refused by the encoder and the decoder. */
@@ -1041,7 +1041,11 @@ static void test_bad_payloads(void) {
   MUT(K_MATCH_REQ, put16(b + 74, 1), SM_PROTO_EFIELD); /* levels without its flag */
   MUT(K_MATCH_REQ, put16(b + 66, SM_MATCH_F_SINGLE_START | SM_MATCH_F_MULTI_START),
       SM_PROTO_EFIELD);
-  MUT(K_MATCH_REQ, put16(b + 66, 0x40), SM_PROTO_EFIELD);
+  MUT(K_MATCH_REQ, put16(b + 66, 0x100), SM_PROTO_EFIELD); /* first reserved bit */
+  MUT(K_MATCH_REQ, put16(b + 66, SM_MATCH_F_MULTIRES | SM_MATCH_F_DIRECT), SM_PROTO_EFIELD);
+  MUT(K_MATCH_REQ, put16(b + 66, SM_MATCH_F_MULTIRES), 0); /* version 3's flags */
+  MUT(K_MATCH_REQ, put16(b + 66, SM_MATCH_F_DIRECT), 0);
+  MUT(K_DIST_REQ, put16(b + 66, SM_MATCH_F_MULTIRES), SM_PROTO_EFIELD); /* MATCH only */
   MUT(K_DIST_REQ, put16(b + 74, 0), 0); /* levels 0 = variant off: valid */
   MUT(K_MATCH_REQ, (put16(b + 68, 50), put16(b + 70, 20)), SM_PROTO_EFIELD); /* k0 > k1 */
   MUT(K_MATCH_REQ, for (int i = 0; i < 8; i++) b[80 + i] = (uint8_t)(nanbits >> (8 * i)),

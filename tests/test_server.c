@@ -733,7 +733,7 @@ int main(void) {
   {
     int fd2 = connect_to(port);
     sm_proto_hello_resp hr2;
-    hello_v(fd2, 1, SM_PROTO_VERSION_MAX, &hr2);
+    hello_v(fd2, 1, 2, &hr2);
     CHECK(hr2.version == 2);
     double c2 = -1;
     CHECK(do_match(fd2, 2, &x, &y, &map, &nx, &dist, NULL, &c2) == SM_ST_OK);
@@ -775,12 +775,21 @@ int main(void) {
     CHECK(f.h.version == 2 && !(f.h.flags & SM_PROTO_F_MORE) && f.h.status == 0);
     frame_free(&f);
 
+    /* MATCH's MULTIRES / DIRECT flags are version 3's: refused on a version 2 connection */
+    match_req(&mq, &x, &y, SM_MATCH_F_MULTIRES);
+    h = req_hdr(g_rid++);
+    h.version = 2;
+    SEND(fd2, sm_proto_enc_match_req(buf, cap, &h, SM_OP_MATCH, &mq));
+    REQUIRE(recv_frame(fd2, &f) == 0);
+    CHECK_MSG(f.h.status == SM_ST_BAD_REQUEST, "MULTIRES on version 2: %s", sm_proto_status_name(f.h.status));
+    frame_free(&f);
+
     /* a frame of another version than the negotiated one is fatal, in version 2 */
     sm_proto_ping pg = {3};
     h = req_hdr(g_rid++);
     h.version = 1;
     SEND(fd2, sm_proto_enc_ping(buf, cap, &h, 0, &pg));
-    expect_goaway(fd2, SM_ST_UNSUPPORTED_VERSION, 2, 1u | 2u << 16);
+    expect_goaway(fd2, SM_ST_UNSUPPORTED_VERSION, 2, 1u | (uint32_t)SM_PROTO_VERSION_MAX << 16);
     close(fd2);
 
     /* HELLO must carry header version 1; a range without a common version is refused */
@@ -794,13 +803,13 @@ int main(void) {
     REQUIRE(sm_proto_enc_hello_req(raw, sizeof raw, &h, &q) == (ptrdiff_t)sizeof raw);
     set_frame_version(raw, 2);
     REQUIRE(send_all(fd2, raw, sizeof raw) == 0);
-    expect_goaway(fd2, SM_ST_UNSUPPORTED_VERSION, 1, 1u | 2u << 16);
+    expect_goaway(fd2, SM_ST_UNSUPPORTED_VERSION, 1, 1u | (uint32_t)SM_PROTO_VERSION_MAX << 16);
     close(fd2);
     fd2 = connect_to(port);
-    q.min_version = q.max_version = 3;
+    q.min_version = q.max_version = SM_PROTO_VERSION_MAX + 1;
     REQUIRE(sm_proto_enc_hello_req(raw, sizeof raw, &h, &q) == (ptrdiff_t)sizeof raw);
     REQUIRE(send_all(fd2, raw, sizeof raw) == 0);
-    expect_goaway(fd2, SM_ST_UNSUPPORTED_VERSION, 1, 1u | 2u << 16);
+    expect_goaway(fd2, SM_ST_UNSUPPORTED_VERSION, 1, 1u | (uint32_t)SM_PROTO_VERSION_MAX << 16);
     close(fd2);
     /* a client of version 2 only */
     fd2 = connect_to(port);
