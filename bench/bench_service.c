@@ -567,12 +567,33 @@ static void *prep_main(void *arg) {
   return NULL;
 }
 
+/* Seconds the daemon's threads spent on a CPU and waiting for one (runnable, in a run
+ * queue), summed over its threads (/proc/PID/task/TID/schedstat: run ns, wait ns). */
+static void daemon_sched(pid_t pid, double *run_s, double *wait_s) {
+  char dir[64];
+  *run_s = *wait_s = 0;
+  snprintf(dir, sizeof dir, "/proc/%d/task", (int)pid);
+  DIR *d = opendir(dir);
+  struct dirent *de;
+  while (d && (de = readdir(d))) {
+    if (de->d_name[0] == '.') continue;
+    char p[128];
+    snprintf(p, sizeof p, "%s/%s/schedstat", dir, de->d_name);
+    FILE *f = fopen(p, "r");
+    unsigned long long run = 0, wait = 0;
+    if (f && fscanf(f, "%llu %llu", &run, &wait) == 2) *run_s += 1e-9 * run, *wait_s += 1e-9 * wait;
+    if (f) fclose(f);
+  }
+  if (d) closedir(d);
+}
+
 /* One round: a daemon with `workers` workers on a fresh data dir, every shape PUT without
  * preparation (untimed), then `workers` clients PREPARE them all. Returns shapes/s (NaN on
  * failure); *server_med: median of the daemon's per-shape preparation times. */
-static double prepare_round(const shape_set *ss, int workers, double *server_med) {
+static double prepare_round(const shape_set *ss, int workers, double *server_med,
+                            double *runnable) {
   char tmp[256], data[300];
-  *server_med = NAN;
+  *server_med = *runnable = NAN;
   if (make_tmpdir(tmp, sizeof tmp)) return NAN;
   snprintf(data, sizeof data, "%s/data", tmp);
   daemon_proc dp = {0};
@@ -597,6 +618,8 @@ static double prepare_round(const shape_set *ss, int workers, double *server_med
     atomic_init(&next, 0);
     pthread_barrier_t bar;
     pthread_barrier_init(&bar, NULL, (unsigned)workers);
+    double run0, wait0, run1, wait1;
+    daemon_sched(dp.pid, &run0, &wait0);
     for (int i = 0; i < workers; i++) {
       w[i].ss = ss, w[i].next = &next, w[i].bar = &bar;
       pthread_create(&th[i], NULL, prep_main, &w[i]);
@@ -612,9 +635,17 @@ static double prepare_round(const shape_set *ss, int workers, double *server_med
       if (w[i].failed) fprintf(stderr, "  prepare client %d: %d failed (%s)\n", i, w[i].failed, w[i].err);
     }
     pthread_barrier_destroy(&bar);
+    daemon_sched(dp.pid, &run1, &wait1);
     if (!failed && done == ss->n && t1 > t0) {
       rate = done / (t1 - t0);
       *server_med = median(all, done);
+      /* The workers' time on or waiting for a CPU over workers x wall: near 1 when they
+       * were never blocked (no lock serializes them; a ratio under 2 then comes from the
+       * cores being taken by others), well under 1 when they waited on each other. */
+      *runnable = (run1 - run0 + wait1 - wait0) / (workers * (t1 - t0));
+      printf("    %d worker%s: on a CPU %.2f, waiting for one %.2f (share of workers x wall)\n",
+             workers, workers > 1 ? "s" : "", (run1 - run0) / (workers * (t1 - t0)),
+             (wait1 - wait0) / (workers * (t1 - t0)));
     }
   }
   for (int i = 0; i < workers; i++) sm_client_close(w[i].c);
@@ -846,7 +877,8 @@ int main(int argc, char **argv) {
   else printf("kept %s\n", tmpA);
 
   /* ---- 5. PREPARE throughput, 1 vs 2 workers ---- */
-  double pr1[16], pr2[16], ps1[16], ps2[16], prep_ratio = NAN, prep_r1 = NAN, prep_r2 = NAN;
+  double pr1[16], pr2[16], ps1[16], ps2[16], ru1[16], ru2[16];
+  double prep_ratio = NAN, prep_r1 = NAN, prep_r2 = NAN, prep_run2 = NAN;
   int np = 0;
   if (prep_runs > 16) prep_runs = 16;
   shape_set ss;
@@ -860,20 +892,21 @@ int main(int argc, char **argv) {
              "and 2 workers (as many clients)\n", ss.n, ss.name[0], ss.name[ss.n - 1]);
     }
     for (int i = 0; !rc && i < prep_runs; i++) {
-      pr1[np] = prepare_round(&ss, 1, &ps1[np]);
-      pr2[np] = prepare_round(&ss, 2, &ps2[np]);
+      pr1[np] = prepare_round(&ss, 1, &ps1[np], &ru1[np]);
+      pr2[np] = prepare_round(&ss, 2, &ps2[np], &ru2[np]);
       if (isnan(pr1[np]) || isnan(pr2[np])) {
         rc = 1;
         break;
       }
-      printf("  run %d: 1 worker %.3f shapes/s (server %.2f s/shape), 2 workers %.3f "
-             "shapes/s (server %.2f s/shape): x%.2f\n",
-             i + 1, pr1[np], ps1[np], pr2[np], ps2[np], pr2[np] / pr1[np]);
+      printf("  run %d: 1 worker %.3f shapes/s (server %.2f s/shape, runnable %.2f), 2 workers "
+             "%.3f shapes/s (server %.2f s/shape, runnable %.2f): x%.2f\n",
+             i + 1, pr1[np], ps1[np], ru1[np], pr2[np], ps2[np], ru2[np], pr2[np] / pr1[np]);
       fflush(stdout);
       np++;
     }
     if (np) {
       prep_r1 = median(pr1, np), prep_r2 = median(pr2, np), prep_ratio = prep_r2 / prep_r1;
+      prep_run2 = median(ru2, np);
     }
   }
   for (int i = 0; i < ss.n; i++) free(ss.draco[i]);
@@ -902,7 +935,8 @@ int main(int argc, char **argv) {
            median(cold, nc) / median(warm, nw));
   if (np)
     printf("PREPARE throughput: 1 worker %.3f shapes/s, 2 workers %.3f shapes/s (medians of "
-           "%d) -> x%.2f (target >= 1.8)\n", prep_r1, prep_r2, np, prep_ratio);
+           "%d) -> x%.2f (target >= 1.8); 2 workers runnable %.2f of the time (1 = never "
+           "blocked on each other)\n", prep_r1, prep_r2, np, prep_ratio, prep_run2);
   const char *faster = NULL;
   for (int k = 1; k < 3; k++) {
     const row *a = find_row("warm", "MATCH", NCL[k]), *b = find_row("blas", "MATCH", NCL[k]);
@@ -947,6 +981,7 @@ int main(int argc, char **argv) {
       fjson_num(f, "prepare_1worker_per_s", prep_r1);
       fjson_num(f, "prepare_2workers_per_s", prep_r2);
       fjson_num(f, "prepare_ratio", prep_ratio);
+      fjson_num(f, "prepare_2workers_runnable", prep_run2);
       fprintf(f, "  \"end\": null\n}\n");
       fclose(f);
     }
