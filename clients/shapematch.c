@@ -1678,6 +1678,10 @@ int main(int argc, char **argv) {
    * 2.44 s / 2.44 s; at load ~1 it is a draw. Shared machines are the common case here;
    * OPENBLAS_NUM_THREADS=2 opts back in. Set here, not in core/: process-wide state. */
   if (!getenv("OPENBLAS_NUM_THREADS")) openblas_set_num_threads(1);
+  /* CHOLMOD's factorizations would open OpenMP teams of 4 threads each whatever the
+   * above says; a local match prepares its two shapes on two threads at once, which then
+   * put 8 threads on the cores (sm_eigs.h). */
+  sm_eigs_openmp_off();
   if (argc < 2) return usage(stderr);
   const char *cmd = argv[1];
   if (!strcmp(cmd, "basis")) return cmd_basis(argc - 2, argv + 2);
