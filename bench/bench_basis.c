@@ -5,7 +5,15 @@
  * child alone) is measured, and prints the median of every timing column. `cpu` is the
  * child's user + system time (getrusage via wait4): on a shared machine it moves less
  * with the load than the wall times do; the load average is printed before and after.
- * Usage: bench_basis [-r reps] [-k k] [--eta e] [mesh ...]   (default: homerA, headA, koala)
+ * Usage: bench_basis [-r reps] [-k k] [--eta e] [--kind lb|elastic] [--holes N [--hole-radius r]]
+ *                    [mesh ...]   (default: homerA, headA, koala; both kinds)
+ *
+ * --holes N: each mesh is also run with N holes cut, a scan-like open surface (issue 13:
+ * large open meshes are what scanners produce): after cleaning and normalizing (area 1),
+ * N seeds by farthest-point sampling in edge-path distance, the faces with a corner within
+ * r (default 0.04) of a seed removed, cleaned and normalized again ("clean" includes the
+ * cut). Its row follows the closed one's, named +Nholes, and a line gives the boundary
+ * edges, the components and the ratios of eigensolve time and solves to the closed run.
  *
  * --parallel [--kind lb|elastic] [-t threads] [mesh ...]: throughput of basis computations
  * on several threads (default 2) against the same shapes one after another, in the same
@@ -17,6 +25,7 @@
  */
 #define _DEFAULT_SOURCE /* wait4: per-child peak memory */
 #include <cblas.h> /* OpenBLAS: openblas_set_num_threads */
+#include <math.h>
 #include <pthread.h>
 #include <stdatomic.h>
 #include <stdio.h>
@@ -29,53 +38,107 @@
 #include "sm_basis.h"
 #include "sm_eigs.h"
 #include "sm_meshio.h"
+#include "sm_metrics.h"
+#include "sm_topology.h"
 
 typedef struct sample {
   double load, clean, assembly, factor, eigs, project, total;
   int solves, n, k, n_kernel;
+  int n_boundary, n_components; /* of the mesh the basis was computed on */
   double cpu; /* child's user + system seconds, whole run */
   long maxrss_kb;
   int ok;
 } sample;
 
-static int run_once(const char *path, int kind, int k, double eta, sample *s) {
+/* *m (cleaned, normalized) <- the same surface with `holes` holes cut: farthest-point
+ * seeds in edge-path distance (the first one farthest from vertex 0), the faces with a
+ * corner within r of a seed dropped; cleaned and normalized again. */
+static int cut_holes(sm_mesh **m, int holes, double r, sm_error *err) {
+  sm_mesh *in = *m, *out = NULL;
+  int32_t nv = in->nv;
+  double *near = malloc((size_t)nv * sizeof *near), *d = malloc((size_t)nv * sizeof *d);
+  sm_edge_paths *ep = NULL;
+  int rc = near && d ? SM_OK : sm_error_set(err, SM_ENOMEM, "holes: out of memory");
+  if (!rc) rc = sm_edge_paths_create(in, &ep, err);
+  if (!rc) rc = sm_edge_paths_run(ep, 0, near, err);
+  for (int h = 0; !rc && h < holes; h++) {
+    int32_t seed = 0; /* the vertex farthest from vertex 0, then from the seeds so far */
+    for (int32_t v = 1; v < nv; v++)
+      if (isfinite(near[v]) && (!isfinite(near[seed]) || near[v] > near[seed])) seed = v;
+    if (h == 0)
+      for (int32_t v = 0; v < nv; v++) near[v] = INFINITY;
+    rc = sm_edge_paths_run(ep, seed, d, err);
+    for (int32_t v = 0; !rc && v < nv; v++) near[v] = fmin(near[v], d[v]);
+  }
+  int32_t kept = 0;
+  for (int32_t f = 0; !rc && f < in->nf; f++) {
+    const int32_t *F = in->F + 3 * (int64_t)f;
+    if (near[F[0]] < r || near[F[1]] < r || near[F[2]] < r) continue;
+    memmove(in->F + 3 * (int64_t)kept++, F, 3 * sizeof *F);
+  }
+  if (!rc) {
+    in->nf = kept;
+    rc = sm_mesh_clean(in, NULL, &out, NULL, err);
+  }
+  if (!rc) rc = sm_mesh_normalize(out, err);
+  sm_edge_paths_destroy(ep);
+  free(near);
+  free(d);
+  if (rc) {
+    sm_mesh_destroy(out);
+    return rc;
+  }
+  sm_mesh_destroy(in);
+  *m = out;
+  return SM_OK;
+}
+
+static int run_once(const char *path, int kind, int k, double eta, int holes, double radius,
+                    sample *s) {
   sm_error err;
   sm_mesh *raw = NULL, *m = NULL;
   sm_basis *b = NULL;
+  sm_edges *e = NULL;
   sm_basis_opts o;
   double t0 = sm_now();
   if (sm_mesh_read_file(path, NULL, &raw, &err)) goto fail;
   double t1 = sm_now();
   if (sm_mesh_clean(raw, NULL, &m, NULL, &err) || sm_mesh_normalize(m, &err)) goto fail;
+  if (holes > 0 && cut_holes(&m, holes, radius, &err)) goto fail;
   double t2 = sm_now();
   sm_basis_opts_default(&o, kind, k);
   if (eta > 0 && kind == SM_BASIS_ELASTIC) o.eta = eta;
   if (sm_basis_compute(m, &o, &b, &err)) goto fail;
   double t3 = sm_now();
+  if (sm_edges_build(m, &e, &err)) goto fail;
   *s = (sample){.load = t1 - t0, .clean = t2 - t1, .assembly = b->timing.assembly,
                 .factor = b->timing.factorization, .eigs = b->timing.eigensolve,
                 .project = b->timing.projection, .total = t3 - t0, .solves = b->timing.solves,
-                .n = b->n, .k = b->k, .n_kernel = b->n_kernel, .ok = 1};
+                .n = b->n, .k = b->k, .n_kernel = b->n_kernel, .ok = 1,
+                .n_boundary = e->n_boundary, .n_components = b->n_components};
+  sm_edges_destroy(e);
   sm_basis_destroy(b);
   sm_mesh_destroy(m);
   sm_mesh_destroy(raw);
   return 0;
 fail:
-  fprintf(stderr, "%s: %s\n", path, err.msg);
+  fprintf(stderr, "%s%s: %s\n", path, holes > 0 ? " (with holes)" : "", err.msg);
+  sm_basis_destroy(b);
   sm_mesh_destroy(m);
   sm_mesh_destroy(raw);
   return 1;
 }
 
 /* Child computes, writes its sample through a pipe; parent adds the child's peak RSS. */
-static int run_forked(const char *path, int kind, int k, double eta, sample *s) {
+static int run_forked(const char *path, int kind, int k, double eta, int holes, double radius,
+                      sample *s) {
   int fd[2];
   if (pipe(fd)) return 1;
   pid_t pid = fork();
   if (pid == 0) {
     close(fd[0]);
     sample c = {0};
-    run_once(path, kind, k, eta, &c);
+    run_once(path, kind, k, eta, holes, radius, &c);
     ssize_t w = write(fd[1], &c, sizeof c);
     _exit(w == (ssize_t)sizeof c ? 0 : 1);
   }
@@ -103,25 +166,48 @@ static double median_of(const sample *s, int n, size_t off) {
   return n % 2 ? v[n / 2] : 0.5 * (v[n / 2 - 1] + v[n / 2]);
 }
 
-static void bench(const char *path, int kind, int k, double eta, int reps) {
-  sample s[64];
-  int n = 0;
-  for (int r = 0; r < reps && r < 64; r++)
-    if (run_forked(path, kind, k, eta, &s[n]) == 0) n++;
-  const char *name = strrchr(path, '/') ? strrchr(path, '/') + 1 : path;
+static void print_row(const char *name, const char *suffix, int kind, const sample *s, int n) {
+  char label[64];
+  snprintf(label, sizeof label, "%s%s", name, suffix);
   if (!n) {
-    printf("%-26s %-7s failed\n", name, kind == SM_BASIS_LB ? "lb" : "elastic");
+    printf("%-26s %-7s failed\n", label, kind == SM_BASIS_LB ? "lb" : "elastic");
     return;
   }
   long rss = 0;
   for (int i = 0; i < n; i++) rss = s[i].maxrss_kb > rss ? s[i].maxrss_kb : rss;
   printf("%-26s %-7s %7d %4d %3d %3d  %6.3f %6.3f %6.3f %6.3f %7.3f %6.3f  %7.3f %7.3f %6d %8.1f\n",
-         name, kind == SM_BASIS_LB ? "lb" : "elastic", s[0].n, s[0].k, s[0].n_kernel, n,
+         label, kind == SM_BASIS_LB ? "lb" : "elastic", s[0].n, s[0].k, s[0].n_kernel, n,
          median_of(s, n, offsetof(sample, load)), median_of(s, n, offsetof(sample, clean)),
          median_of(s, n, offsetof(sample, assembly)), median_of(s, n, offsetof(sample, factor)),
          median_of(s, n, offsetof(sample, eigs)), median_of(s, n, offsetof(sample, project)),
          median_of(s, n, offsetof(sample, total)), median_of(s, n, offsetof(sample, cpu)),
          s[0].solves, rss / 1024.0);
+}
+
+/* The closed mesh's runs and, with holes, the holed mesh's alternating with them (a drift
+ * of the machine's load touches both). */
+static void bench(const char *path, int kind, int k, double eta, int reps, int holes,
+                  double radius) {
+  sample s[64], h[64];
+  int n = 0, nh = 0;
+  for (int r = 0; r < reps && r < 64; r++) {
+    if (run_forked(path, kind, k, eta, 0, 0, &s[n]) == 0) n++;
+    if (holes > 0 && run_forked(path, kind, k, eta, holes, radius, &h[nh]) == 0) nh++;
+  }
+  const char *name = strrchr(path, '/') ? strrchr(path, '/') + 1 : path;
+  print_row(name, "", kind, s, n);
+  if (holes > 0) {
+    char suffix[32];
+    snprintf(suffix, sizeof suffix, "+%dholes", holes);
+    print_row(name, suffix, kind, h, nh);
+    if (n && nh)
+      printf("  %s with %d holes (r = %g): %d boundary edges, %d component(s); eigensolve "
+             "%.2fx and solves %.2fx the closed mesh's, cpu %.2fx\n", name, holes, radius,
+             h[0].n_boundary, h[0].n_components,
+             median_of(h, nh, offsetof(sample, eigs)) / median_of(s, n, offsetof(sample, eigs)),
+             (double)h[0].solves / s[0].solves,
+             median_of(h, nh, offsetof(sample, cpu)) / median_of(s, n, offsetof(sample, cpu)));
+  }
   fflush(stdout);
 }
 
@@ -235,8 +321,8 @@ int main(int argc, char **argv) {
    * OPENBLAS_NUM_THREADS is set: the children inherit the setting. */
   if (!getenv("OPENBLAS_NUM_THREADS")) openblas_set_num_threads(1);
   sm_eigs_openmp_off(); /* as the daemon: one thread per basis, CHOLMOD's included */
-  int reps = 5, k = 100, parallel = 0, nthreads = 2, kind = SM_BASIS_ELASTIC;
-  double eta = 0;
+  int reps = 5, k = 100, parallel = 0, nthreads = 2, kind = 0, holes = 0;
+  double eta = 0, radius = 0.04;
   const char *meshes[32];
   int nm = 0;
   for (int i = 1; i < argc; i++) {
@@ -247,6 +333,8 @@ int main(int argc, char **argv) {
     else if (!strcmp(argv[i], "-t") && i + 1 < argc) nthreads = atoi(argv[++i]);
     else if (!strcmp(argv[i], "--kind") && i + 1 < argc)
       kind = !strcmp(argv[++i], "lb") ? SM_BASIS_LB : SM_BASIS_ELASTIC;
+    else if (!strcmp(argv[i], "--holes") && i + 1 < argc) holes = atoi(argv[++i]);
+    else if (!strcmp(argv[i], "--hole-radius") && i + 1 < argc) radius = atof(argv[++i]);
     else if (nm < 32) meshes[nm++] = argv[i];
   }
   if (parallel) {
@@ -257,7 +345,7 @@ int main(int argc, char **argv) {
       meshes[nm++] = SM_DATA_DIR "/pyfm_cat_lion/cat-00.off";
     }
     if (nthreads < 1 || nthreads > 16) nthreads = 2;
-    return bench_parallel(meshes, nm, kind, k, eta, reps, nthreads);
+    return bench_parallel(meshes, nm, kind ? kind : SM_BASIS_ELASTIC, k, eta, reps, nthreads);
   }
   if (!nm) {
     meshes[nm++] = SM_DATA_DIR "/elasticbasis_cartoon_pairs/homerA.obj";
@@ -270,8 +358,8 @@ int main(int argc, char **argv) {
          "basis", "verts", "k", "ker", "ok", "load", "clean", "assem", "factor", "eigs", "proj",
          "total", "cpu", "solves", "peakMB");
   for (int i = 0; i < nm; i++) {
-    bench(meshes[i], SM_BASIS_LB, k, eta, reps);
-    bench(meshes[i], SM_BASIS_ELASTIC, k, eta, reps);
+    if (kind != SM_BASIS_ELASTIC) bench(meshes[i], SM_BASIS_LB, k, eta, reps, holes, radius);
+    if (kind != SM_BASIS_LB) bench(meshes[i], SM_BASIS_ELASTIC, k, eta, reps, holes, radius);
   }
   print_load("after");
   return 0;
