@@ -139,6 +139,27 @@ class Codec(unittest.TestCase):
             shapematch.QueryRequest("0" * 64, k=0)
         with self.assertRaisesRegex(shapematch.ConnectFailed, "port"):
             shapematch.parse_address("host:99999")
+        with self.assertRaisesRegex(ValueError, "multires"):
+            shapematch.MatchRequest("0" * 64, "1" * 64, multires="yes")
+        with self.assertRaisesRegex(ValueError, "multires"):
+            shapematch.DistanceRequest("0" * 64, "1" * 64, multires="on")
+
+    def test_multires_flags(self):
+        """Version 3's MATCH flags (section 5.7): bit 6 MULTIRES, bit 7 DIRECT, neither for
+        auto; refused before sending to an older server."""
+        def flags(req):
+            return int.from_bytes(req.body[66:68], "little")
+        for mode, bit in (("auto", 0), ("on", 64), ("off", 128)):
+            req = shapematch.MatchRequest("0" * 64, "1" * 64, multires=mode, want_yx=True)
+            self.assertEqual(flags(req), bit | wire.M_WANT_YX)
+
+        class Ctx:
+            version = 2
+        on = shapematch.MatchRequest("0" * 64, "1" * 64, multires="on")
+        with self.assertRaisesRegex(shapematch.OverLimit, "version 2.*version 3"):
+            on.payload(Ctx())
+        auto = shapematch.MatchRequest("0" * 64, "1" * 64)
+        self.assertEqual(auto.payload(Ctx()), auto.body)
 
 
 class AgainstCli(unittest.TestCase):
@@ -199,6 +220,28 @@ class AgainstCli(unittest.TestCase):
                          landmarks=[(0, 0), (10, 10)])
         with open(xy) as f:
             self.assertEqual(map_text(r.map), f.read())
+
+    def test_multires_equals_cli_local(self):
+        """multires="on" through a daemon whose coarse level has 300 vertices: the map equals
+        the CLI's local --multires on --coarse-nv 300 map of the same files, and differs
+        from the direct path's (the flag reached the server)."""
+        addr = start_daemon("store_mr", "--multires-coarse-nv", "300")
+        xy = os.path.join(TMP, "cli_mr.txt")
+        cli("match", SHAPES["blob1"], SHAPES["blob2.drc"], "--local", "--multires", "on",
+            "--coarse-nv", "300", "-o", xy)
+        with shapematch.Client(addr) as c:
+            self.assertEqual(c.version, wire.VERSION_MULTIRES)
+            a, b = c.put(SHAPES["blob1"]).id, c.put(SHAPES["blob2.drc"]).id
+            on = c.match(a, b, multires="on")
+            off = c.match(a, b, multires="off")
+            auto = c.match(a, b)
+        with open(xy) as f:
+            self.assertEqual(map_text(on.map), f.read())
+        self.assertEqual(map_text(off.map), map_text(auto.map))  # 642 vertices: direct
+        self.assertNotEqual(map_text(on.map), map_text(off.map))
+        self.assertEqual(len(on.map), 642)
+        # the blobs share vertex order: most of the coarse path's map is still the identity
+        self.assertGreater(sum(int(v) == i for i, v in enumerate(on.map)), 400)
 
     def test_distance_equals_cli(self):
         a, b = self.ids["blob1"], self.ids["blob3"]

@@ -272,6 +272,7 @@ class PrepareRequest(Request):
 
 BASES = {"default": 0, "lb": 1, "elastic": 2, "hybrid": 3}
 INITS = {"default": 0, "nn": 1, "sinkhorn": 2}
+MULTIRES = {"auto": 0, "on": wire.M_MULTIRES, "off": wire.M_DIRECT}
 
 
 def _choice(name, value, table):
@@ -286,21 +287,25 @@ class MatchRequest(Request):
     k1, step, eta, sinkhorn_levels (None = default; 0 turns the Sinkhorn refinement off),
     multi_start (None, True, False), landmarks (pairs (vx, vy) of input vertices),
     init_map (a vertex of y per input vertex of x, -1 allowed), want_yx, want_fmap,
-    want_distance, deadline_ms."""
+    want_distance, deadline_ms, multires ("auto": the server's choice by vertex count, "on":
+    through the coarse level, "off": the direct path; "on" and "off" need a protocol version
+    3 server, else OverLimit and nothing is sent)."""
     op = wire.MATCH
     compute = True
     _wants = True
 
     def __init__(self, x, y, basis="default", init="default", k0=0, k1=0, step=0, eta=0.0,
                  sinkhorn_levels=None, multi_start=None, landmarks=None, init_map=None,
-                 want_yx=False, want_fmap=False, want_distance=False, deadline_ms=0):
+                 want_yx=False, want_fmap=False, want_distance=False, deadline_ms=0,
+                 multires="auto"):
         self.x, self.y = shape_id(x), shape_id(y)
         flags = 0
         if self._wants:
             flags |= (wire.M_WANT_YX if want_yx else 0) | (wire.M_WANT_FMAP if want_fmap else 0)
             flags |= wire.M_WANT_DISTANCE if want_distance else 0
-        elif want_yx or want_fmap or want_distance:
-            raise ValueError("want_yx, want_fmap and want_distance are MATCH options")
+            flags |= _choice("multires", multires, MULTIRES)
+        elif want_yx or want_fmap or want_distance or multires != "auto":
+            raise ValueError("want_yx, want_fmap, want_distance and multires are MATCH options")
         if multi_start is not None:
             flags |= wire.M_MULTI_START if multi_start else wire.M_SINGLE_START
         levels = 0
@@ -317,6 +322,11 @@ class MatchRequest(Request):
                                    eta, deadline_ms, lm, self.init_map)
 
     def payload(self, ctx):
+        flags = struct.unpack_from("<H", self.body, 2 * wire.ID_LEN + 2)[0]
+        if flags & (wire.M_MULTIRES | wire.M_DIRECT) and ctx.version < wire.VERSION_MULTIRES:
+            raise OverLimit("the server speaks protocol version %d: choosing the path "
+                            "(multires on/off) needs version %d"
+                            % (ctx.version, wire.VERSION_MULTIRES))
         return self.body
 
     def decode(self, ctx, body):

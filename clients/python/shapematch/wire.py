@@ -1,4 +1,4 @@
-"""The shapematch wire format (protocol/PROTOCOL.md, versions 1 and 2) as pure functions.
+"""The shapematch wire format (protocol/PROTOCOL.md, versions 1 to 3) as pure functions.
 
 No sockets and no state here: frames and payloads go in and out as bytes, so the codec can
 be checked on its own and the client (client.py) only moves bytes. Every decoder checks the
@@ -12,9 +12,10 @@ from .errors import ProtocolViolation
 
 MAGIC = b"\x89SMP"
 HEADER_LEN = 24
-VERSION_MIN, VERSION_MAX = 1, 2
+VERSION_MIN, VERSION_MAX = 1, 3
 VERSION_HELLO = 1        # the header version of both HELLO frames (section 5.1)
 VERSION_CONFIDENCE = 2   # first version whose MATCH response ends with confidence
+VERSION_MULTIRES = 3     # first version whose MATCH may choose its path (MULTIRES, DIRECT)
 HELLO_MAX_PAYLOAD = 4096
 MAX_TOKEN = 256
 MAX_MSG = 1024
@@ -166,6 +167,7 @@ def enc_prepare(shape_id, k_lb, k_elastic, eta):
 # MATCH request flags (section 5.7).
 M_WANT_YX, M_WANT_FMAP, M_SINGLE_START = 1, 2, 4
 M_WANT_DISTANCE, M_MULTI_START, M_SINKHORN_LEVELS = 8, 16, 32
+M_MULTIRES, M_DIRECT = 64, 128   # version >= 3 only
 
 
 def enc_match(x, y, basis, init, flags, k0, k1, step, sinkhorn_levels, eta, deadline_ms,
