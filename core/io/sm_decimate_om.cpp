@@ -9,14 +9,23 @@
  *   60 degrees (ModNormalFlipping), which keeps the decimated surface free of fold-overs.
  *   sm_mesh_decimate_proxy also vetoes collapses that would leave a face with an aspect
  *   ratio above a bound (ModAspectRatio, binary): the quadric order alone leaves needle
- *   triangles, which the coarse bases of sm_multires.h are computed on.
+ *   triangles, which the coarse bases of sm_multires.h are computed on. The proxy runs
+ *   the same greedy order with fewer legality tests (LazyDecimater::greedy_decimate):
+ *   OpenMesh's DecimaterT tests every outgoing halfedge of every neighbour of each collapse
+ *   (topology and the veto modules, 60-70% of its time), the lazy order only the
+ *   collapses that reach the top of the heap. Measured (bench_large --decimate, CPU):
+ *   dragon 100k -> 5k 5.6-6.0 s -> 1.6 s, the proxy's distance to the surface unchanged.
+ *   sm_mesh_decimate and _lenient keep DecimaterT (their outputs are test and benchmark
+ *   inputs elsewhere).
  *   After garbage collection the vertices are renumbered 0..n-1 in OpenMesh's order.
  */
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <exception>
 #include <mutex>
 #include <new>
+#include <queue>
 #include <vector>
 
 #include <OpenMesh/Core/Mesh/TriMesh_ArrayKernelT.hh>
@@ -84,6 +93,95 @@ int extract(OmTri &om, sm_mesh **out, sm_error *err) {
  * builds from re-enabling it under each other. */
 std::mutex g_omerr_lock;
 
+/* DecimaterT with greedy_decimate, a faster run of its own greedy order (below). */
+class LazyDecimater : public OpenMesh::Decimater::DecimaterT<OmTri> {
+ public:
+  /* BaseDecimaterT is a virtual base of DecimaterT: the most derived class constructs it. */
+  explicit LazyDecimater(OmTri &m)
+      : OpenMesh::Decimater::BaseDecimaterT<OmTri>(m), OpenMesh::Decimater::DecimaterT<OmTri>(m),
+        om_(m) {}
+
+  /* The greedy order of DecimaterT (each vertex keyed by its best legal collapse, the
+   * lowest quadric error first, the neighbours of a collapse keyed again) with fewer tests.
+   * A vertex is first keyed by its lowest quadric error over all its outgoing halfedges,
+   * legal or not: a lower bound of its best legal one. When such a key reaches the top
+   * and its halfedge passes the topology test and the veto modules, it is the best legal
+   * collapse of all (every other key is at most as low as its vertex's best legal
+   * collapse); when it fails, the vertex is keyed again by its best legal halfedge,
+   * found by testing its halfedges in quadric order until one passes. The tests, which
+   * cost most (OpenMesh's is_collapse_ok and the modules), then run for the keys that
+   * reach the top, not for every halfedge around every neighbour of every collapse. The
+   * heap is lazy (a vertex keyed again gets a new stamp, older entries are skipped) and
+   * ties go to the lower vertex index. */
+  size_t greedy_decimate(OpenMesh::Decimater::ModQuadricT<OmTri> &quadric, size_t alive,
+                         size_t target) {
+    struct entry {
+      float prio;
+      int v, h;
+      unsigned stamp;
+      bool verified;
+      bool operator<(const entry &o) const {  /* priority_queue pops the largest */
+        return prio != o.prio ? prio > o.prio : v > o.v;
+      }
+    };
+    std::vector<unsigned> stamp(om_.n_vertices(), 0);
+    std::priority_queue<entry> heap;
+    std::vector<std::pair<float, int>> out;
+    auto key = [&](OmTri::VertexHandle v, bool verify) {
+      unsigned st = ++stamp[(size_t)v.idx()];
+      out.clear();
+      for (auto h : om_.voh_range(v)) {
+        float p = quadric.collapse_priority(CollapseInfo(om_, h));
+        if (p >= 0.0f) out.push_back({p, h.idx()});
+      }
+      std::stable_sort(out.begin(), out.end(), [](const std::pair<float, int> &a,
+                                                  const std::pair<float, int> &b) {
+        return a.first < b.first;
+      });
+      for (const auto &c : out) {
+        if (!verify) {
+          heap.push({c.first, v.idx(), c.second, st, false});
+          return;
+        }
+        CollapseInfo ci(om_, OmTri::HalfedgeHandle(c.second));
+        if (this->is_collapse_legal(ci) && this->collapse_priority(ci) >= 0.0f) {
+          heap.push({c.first, v.idx(), c.second, st, true});
+          return;
+        }
+      }
+    };
+    for (auto v : om_.vertices())
+      if (!om_.status(v).deleted()) key(v, false);
+    std::vector<OmTri::VertexHandle> support;
+    size_t n = 0;
+    while (alive > target && !heap.empty()) {
+      entry e = heap.top();
+      heap.pop();
+      if (e.stamp != stamp[(size_t)e.v] || om_.status(OmTri::VertexHandle(e.v)).deleted()) continue;
+      CollapseInfo ci(om_, OmTri::HalfedgeHandle(e.h));
+      if (!this->is_collapse_legal(ci) || (!e.verified && this->collapse_priority(ci) < 0.0f)) {
+        if (!e.verified) key(ci.v0, true);
+        continue;
+      }
+      support.clear();
+      for (auto w : om_.vv_range(ci.v0)) support.push_back(w);
+      this->preprocess_collapse(ci);
+      om_.collapse(ci.v0v1);
+      for (auto f : om_.vf_range(ci.v1))
+        if (!om_.status(f).deleted()) om_.set_normal(f, om_.calc_face_normal(f));
+      this->postprocess_collapse(ci);
+      stamp[(size_t)ci.v0.idx()]++;
+      for (auto w : support) key(w, false);
+      alive--;
+      n++;
+    }
+    return n;
+  }
+
+ private:
+  OmTri &om_;
+};
+
 int decimate_impl(const sm_mesh *in, int32_t target_nv, double max_aspect, int32_t *skipped,
                   sm_mesh **out, sm_error *err) {
   OmTri om;
@@ -99,7 +197,7 @@ int decimate_impl(const sm_mesh *in, int32_t target_nv, double max_aspect, int32
   }
   if (rc) return rc;
   om.update_face_normals();
-  OpenMesh::Decimater::DecimaterT<OmTri> dec(om);
+  LazyDecimater dec(om);
   OpenMesh::Decimater::ModQuadricT<OmTri>::Handle quadric;
   OpenMesh::Decimater::ModNormalFlippingT<OmTri>::Handle flipping;
   dec.add(quadric);
@@ -113,7 +211,17 @@ int decimate_impl(const sm_mesh *in, int32_t target_nv, double max_aspect, int32
   }
   if (!dec.initialize())
     return sm_error_set(err, SM_EINVAL, "decimate: OpenMesh decimater failed to initialize");
-  dec.decimate_to((size_t)target_nv);
+  if (max_aspect > 0) {
+    /* As decimate_to: the result has target_nv vertices counting those without a face (left
+     * by refused faces), which cannot be collapsed. */
+    size_t alive = 0;
+    for (auto v : om.vertices()) alive += !om.is_isolated(v);
+    size_t isolated = om.n_vertices() - alive, target = (size_t)target_nv;
+    target = target > isolated ? target - isolated : 0;
+    if (alive > target) dec.greedy_decimate(dec.module(quadric), alive, target);
+  } else {
+    dec.decimate_to((size_t)target_nv);
+  }
   return extract(om, out, err);
 }
 
