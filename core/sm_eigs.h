@@ -1,8 +1,8 @@
 /* sm_eigs: the smallest eigenpairs of a sparse symmetric generalized problem
  *     A x = lambda D x,   A symmetric PSD (lower triangle in an sm_csc), D diagonal > 0,
- * by block shift-invert Lanczos with thick restarts (block Krylov-Schur, sm_eigs.c) over a
- * sparse Cholesky factor (CHOLMOD) of K = A - sigma D, with sigma < 0 so that K is SPD
- * even when A is singular.
+ * by block shift-invert Lanczos with thick restarts and locking (block Krylov-Schur,
+ * sm_eigs.c) over a sparse Cholesky factor (CHOLMOD) of K = A - sigma D, with sigma < 0
+ * so that K is SPD even when A is singular.
  *
  * Why this formulation: with s = sqrt(D), the operator s K^-1 s is symmetric in the plain
  * inner product and has eigenvalues 1/(lambda - sigma), so the iteration is a standard
@@ -35,8 +35,9 @@ typedef struct sm_eigs_opts {
   int nev;          /* eigenpairs wanted */
   double sigma;     /* shift, < smallest eigenvalue */
   double tol;       /* relative residual: ||T z - theta z|| <= tol theta (0 = 1e-9) */
-  int ncv;          /* Krylov basis size before a restart (0 = automatic: 3 nev, at
-                     * least nev + 3 block, rounded up to a multiple of block) */
+  int ncv;          /* Krylov basis size before a restart (0 = automatic: 3 nev, 4 nev
+                     * from n = 100,000 on, at least nev + 3 block, rounded up to a
+                     * multiple of block) */
   int maxiter;      /* restarts (0 = automatic: 100) */
   int maxsolves;    /* operator applications, counted per vector (0 = automatic:
                      * 10 ncv + 100); with maxiter it bounds the time a failing run takes
@@ -44,7 +45,8 @@ typedef struct sm_eigs_opts {
   int ordering;     /* fill-reducing ordering: SM_ORDER_* (0 = CHOLMOD's default choice) */
   int (*cancel)(void *ud);
   void *cancel_ud;
-  int block;        /* vectors per block (0 = automatic: 12; at most 64) */
+  int block;        /* vectors per block (0 = automatic: 12, 16 from n = 100,000 on;
+                     * at most 64) */
 } sm_eigs_opts;
 
 typedef struct sm_eigs_stats {

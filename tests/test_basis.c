@@ -66,7 +66,9 @@ static void test_lb_sphere(void) {
  * b vectors captures multiplicities up to b directly. The icosphere's LB spectrum has
  * exact multiplicities up to 5 (icosahedral symmetry) inside near-degenerate clusters of
  * 2l + 1; k = 50 ends inside the l = 7 cluster, k = 100 at the end of l = 9; two copies
- * double every multiplicity. */
+ * double every multiplicity. Also at the sizes the solver takes on large problems (block
+ * 16, basis 4 k), and the eigenvectors must come out M-orthonormal (locking reorders
+ * them). */
 static void check_repeated(sm_mesh *m, const char *what) {
   int n = m->nv;
   sm_error err;
@@ -81,13 +83,44 @@ static void check_repeated(sm_mesh *m, const char *what) {
       C[(size_t)j * n + W->rowind[p]] = W->val[p] / sqrt(mass[W->rowind[p]] * mass[j]);
   REQUIRE(LAPACKE_dsyev(LAPACK_COL_MAJOR, 'N', 'L', n, C, n, ref) == 0);
   const int ks[2] = {50, 100};
-  for (int ki = 0; ki < 2; ki++) {
-    int k = ks[ki];
+  for (int ki = 0; ki < 4; ki++) {
+    int k = ks[ki % 2], large = ki >= 2;
     double *ev = malloc((size_t)k * sizeof *ev), *X = malloc((size_t)n * k * sizeof *X);
     REQUIRE(ev && X);
     sm_eigs_opts o = {.nev = k, .sigma = -1e-6 * ref[n - 1]}; /* default tol and ncv */
+    if (large) {
+      o.block = 16;
+      o.ncv = 4 * k;
+    }
     int rc = sm_eigs_smallest(W, mass, &o, ev, X, NULL, &err);
-    CHECK_MSG(rc == 0, "%s k=%d: %s", what, k, rc ? err.msg : "");
+    CHECK_MSG(rc == 0, "%s k=%d%s: %s", what, k, large ? " (large sizes)" : "",
+              rc ? err.msg : "");
+    double orth = 0;
+    for (int p = 0; !rc && p < k; p++)
+      for (int q = 0; q <= p; q++) {
+        double d = 0;
+        for (int i = 0; i < n; i++) d += X[(size_t)p * n + i] * mass[i] * X[(size_t)q * n + i];
+        orth = fmax(orth, fabs(d - (p == q)));
+      }
+    CHECK_MSG(orth < 1e-10, "%s k=%d: eigenvectors M-orthonormal to %g", what, k, orth);
+    /* each vector goes with its value: ||W x - lambda M x||_{M^-1} small */
+    double resid = 0, *y = malloc((size_t)n * sizeof *y);
+    REQUIRE(y);
+    for (int p = 0; !rc && p < k; p++) {
+      const double *x = X + (size_t)p * n;
+      for (int i = 0; i < n; i++) y[i] = -ev[p] * mass[i] * x[i];
+      for (int j = 0; j < n; j++)
+        for (int q = W->colptr[j]; q < W->colptr[j + 1]; q++) {
+          int i = W->rowind[q];
+          y[i] += W->val[q] * x[j];
+          if (i != j) y[j] += W->val[q] * x[i];
+        }
+      double r2 = 0;
+      for (int i = 0; i < n; i++) r2 += y[i] * y[i] / mass[i];
+      resid = fmax(resid, sqrt(r2));
+    }
+    free(y);
+    CHECK_MSG(resid < 1e-6 * ref[k - 1], "%s k=%d: residual %g", what, k, resid);
     double worst = 0;
     int at = -1;
     for (int i = 0; !rc && i < k; i++)
