@@ -559,15 +559,23 @@ static int dense_smallest(const sm_csc *A, const double *s, int nev, double *eva
  * load ~8-9): koala (150k unknowns) b = 12, 3 nev: 540 solves, 15.6 s; b = 16, 4 nev:
  * 544 solves in 34 steps, 14.2 s (b = 12, 4 nev: 468 solves, 14.7 s; b = 24, 4 nev: 720,
  * 16.5 s); headA (45k) 3.75 s either way; homerA (15k) 0.99 s against 1.05 s. Memory at
- * 150k unknowns: 0.56 GB of basis instead of 0.42 GB. */
-enum { SM_EIGS_LARGE_N = 100000 };
+ * 150k unknowns: 0.56 GB of basis instead of 0.42 GB.
+ * Very sparse factors (under SM_EIGS_CHEAP_FILL nonzeros per row: LB on small meshes)
+ * take a basis of 2 nev: a solve then costs less than a Gram-Schmidt step over a long
+ * basis (4 fill against 4 k flops per vector), so more solves and restarts on a shorter
+ * basis win. Measured (LB k = 100, CPU of the basis, alternating runs, load ~7-8): homerA
+ * (5k vertices, fill 19) 0.236 -> 0.208 s, lion (fill 16) 0.247 -> 0.224 s; headA (fill
+ * 42) 0.863 against 0.849 s; the elastic problems (fill 130 and more) lose with 2 nev:
+ * homerA 0.93 against 1.06 s, lion 0.92 against 0.94 s. */
+enum { SM_EIGS_LARGE_N = 100000, SM_EIGS_CHEAP_FILL = 30 };
 
-static void sizes(const sm_eigs_opts *o, int n, int *b, int *mmax, int *keep) {
-  int large = n >= SM_EIGS_LARGE_N;
+/* fill: the factor's nonzeros per row, 0 before it is known. */
+static void sizes(const sm_eigs_opts *o, int n, double fill, int *b, int *mmax, int *keep) {
+  int large = n >= SM_EIGS_LARGE_N, cheap = fill > 0 && fill < SM_EIGS_CHEAP_FILL;
   int bb = o->block > 0 ? o->block : large ? 16 : 12;
   if (bb > 64) bb = 64; /* the b x b workspaces live on the stack */
   if (bb > o->nev) bb = o->nev < 4 ? 4 : o->nev;
-  int m = o->ncv > 0 ? o->ncv : (large ? 4 : 3) * o->nev;
+  int m = o->ncv > 0 ? o->ncv : (large ? 4 : cheap ? 2 : 3) * o->nev;
   int kp = o->nev + bb;
   if (m < kp + 2 * bb) m = kp + 2 * bb;
   m = (m + bb - 1) / bb * bb;
@@ -587,8 +595,8 @@ int sm_eigs_smallest(const sm_csc *A, const double *D, const sm_eigs_opts *o, do
                         "problem", o->nev, n, n);
   if (!(o->sigma < 0))
     return sm_error_set(err, SM_EINVAL, "eigensolver: shift %g must be negative", o->sigma);
-  int b, mmax, keep;
-  sizes(o, n, &b, &mmax, &keep);
+  int b, mmax, keep; /* the largest basis first: it decides whether n is too small */
+  sizes(o, n, 0, &b, &mmax, &keep);
 
   double *s = malloc((size_t)n * sizeof *s);
   if (!s) return sm_error_set(err, SM_ENOMEM, "eigensolver: out of memory (n = %d)", n);
@@ -617,12 +625,18 @@ int sm_eigs_smallest(const sm_csc *A, const double *D, const sm_eigs_opts *o, do
   set_ordering(&sv.c, o->ordering);
   sv.tmp = malloc((size_t)n * b * sizeof *sv.tmp);
   bks w;
-  int rc = bks_alloc(&w, n, o->nev, b, mmax, keep);
-  if (rc || !sv.tmp) {
-    rc = sm_error_set(err, SM_ENOMEM, "eigensolver: out of memory (n = %d, basis %d)", n, mmax);
+  memset(&w, 0, sizeof w);
+  int rc = sv.tmp ? SM_OK : SM_ENOMEM;
+  if (rc) {
+    rc = sm_error_set(err, SM_ENOMEM, "eigensolver: out of memory (n = %d)", n);
     goto done;
   }
   if ((rc = factor(&sv, A, D, o->sigma, st, err))) goto done;
+  sizes(o, n, st->factor_nnz / n, &b, &mmax, &keep);
+  if ((rc = bks_alloc(&w, n, o->nev, b, mmax, keep))) {
+    rc = sm_error_set(err, SM_ENOMEM, "eigensolver: out of memory (n = %d, basis %d)", n, mmax);
+    goto done;
+  }
   double t0 = sm_now();
   rc = run_bks(&sv, &w, o, st, err);
   int *order = rc ? NULL : malloc((size_t)o->nev * sizeof *order);

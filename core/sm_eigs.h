@@ -36,8 +36,9 @@ typedef struct sm_eigs_opts {
   double sigma;     /* shift, < smallest eigenvalue */
   double tol;       /* relative residual: ||T z - theta z|| <= tol theta (0 = 1e-9) */
   int ncv;          /* Krylov basis size before a restart (0 = automatic: 3 nev, 4 nev
-                     * from n = 100,000 on, at least nev + 3 block, rounded up to a
-                     * multiple of block) */
+                     * from n = 100,000 on, 2 nev when the factor has under 30 nonzeros
+                     * per row; at least nev + 3 block, rounded up to a multiple of
+                     * block) */
   int maxiter;      /* restarts (0 = automatic: 100) */
   int maxsolves;    /* operator applications, counted per vector (0 = automatic:
                      * 10 ncv + 100); with maxiter it bounds the time a failing run takes
