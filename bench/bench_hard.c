@@ -23,6 +23,7 @@
  * Usage: bench_hard [--sets a,b] [--cache DIR] [--threads N] [--json OUT] [--limit N]
  *                   [--global 0|1|2] [--multi-start] [--k1 K] [--analyze]
  *                   [--extremities 0|1|2] [--ext-below C] [--ext-hypotheses H]
+ *                   [--bijective W] (the last stage's bijective ZoomOut weight, 0 = off)
  * Exit: 0, 1 on a failure, 77 when ../shared/data is absent.
  */
 #define _POSIX_C_SOURCE 200809L
@@ -65,7 +66,7 @@ typedef struct hard_pair {
 typedef struct bench_cfg {
   const char *cache;
   int global, multi_start, k1, analyze, extremities, ext_h;
-  double ext_below;
+  double ext_below, bijective; /* bijective < 0: the product's default */
 } bench_cfg;
 
 /* ---- shapes, with their bases cached on disk ----------------------------------------- */
@@ -158,6 +159,7 @@ static void match_options(const bench_cfg *c, sm_match_opts *o) {
   if (c->ext_h > 0) o->ext_hypotheses = c->ext_h;
   o->multi_start = c->multi_start;
   if (c->k1 > 0) o->k1 = c->k1;
+  if (c->bijective >= 0) o->bijective = c->bijective;
   o->want_yx = 1;
 }
 
@@ -429,12 +431,12 @@ static void usage(void) {
   fprintf(stderr, "usage: bench_hard [--sets gorilla,manwoman,within,classic] [--cache DIR] "
                   "[--threads N] [--json OUT] [--limit N] [--global 0|1] [--multi-start] "
                   "[--k1 K] [--analyze] [--extremities 0|1|2] [--ext-below C] "
-                  "[--ext-hypotheses H]\n");
+                  "[--ext-hypotheses H] [--bijective W]\n");
 }
 
 int main(int argc, char **argv) {
   bench_cfg cfg = {.cache = "bench-cache", .global = -1, .extremities = -1,
-                   .ext_below = -1};
+                   .ext_below = -1, .bijective = -1};
   const char *sets_arg = NULL, *json = NULL;
   int threads = 2, limit = 0;
   for (int i = 1; i < argc; i++) {
@@ -450,6 +452,7 @@ int main(int argc, char **argv) {
     else if (!strcmp(a, "--extremities") && v) cfg.extremities = atoi(argv[++i]);
     else if (!strcmp(a, "--ext-below") && v) cfg.ext_below = atof(argv[++i]);
     else if (!strcmp(a, "--ext-hypotheses") && v) cfg.ext_h = atoi(argv[++i]);
+    else if (!strcmp(a, "--bijective") && v) cfg.bijective = atof(argv[++i]);
     else if (!strcmp(a, "--multi-start")) cfg.multi_start = 1;
     else if (!strcmp(a, "--analyze")) cfg.analyze = 1;
     else {

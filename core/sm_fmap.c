@@ -298,6 +298,8 @@ typedef struct zpair {
   double *UF;    /* fit rows x K: sqrt(cell mass) u^X */
   double *GF;    /* K x K Cholesky factor of UF^T UF, NULL when the fit set is all of X */
   double *Cw;    /* K x K current whitened map */
+  /* Bijective only: the same for the Y -> X map (fit rows on Y, Dw: X -> Y coefficients). */
+  double *UFy, *GFy, *Dw;
 } zpair;
 
 typedef struct zctx {
@@ -312,6 +314,12 @@ typedef struct zctx {
   double *sqw;         /* nfit: sqrt of the fit weights */
   int32_t *Tfit;       /* current map on the fit set, global Y indices */
   int32_t *T_yx;       /* wanted Y -> X map (filled with the last iteration), or NULL */
+  /* Bijective only: the Y fit set (the Y samples, or all of Y) and the Y -> X map on it. */
+  int32_t nfit_y;
+  double *sqw_y;
+  int32_t *Sfit;       /* global X indices; valid once have_s */
+  int32_t *Sq;         /* Y -> query-row map of the last assignment (ncand or n_Y) */
+  int have_s;
   double *EX, *EY, *Z;
   sm_zoomout_stats st;
 } zctx;
@@ -325,7 +333,13 @@ static void zctx_free(zctx *z) {
     free(q->UF);
     free(q->GF);
     free(q->Cw);
+    free(q->UFy);
+    free(q->GFy);
+    free(q->Dw);
   }
+  free(z->sqw_y);
+  free(z->Sfit);
+  free(z->Sq);
   free(z->fit);
   free(z->cand);
   free(z->sqw);
@@ -349,8 +363,11 @@ static int check_zoomout(const sm_fmap_pair *pairs, int np, const sm_zoomout_opt
   int32_t nx = pairs[0].x->n, ny = pairs[0].y->n;
   if (o->samples_x && o->nsample_x < nx && (!o->cellw_x || check_map(o->samples_x, o->nsample_x, nx, err)))
     return sm_error_set(err, SM_EINVAL, "zoomout: bad X samples");
-  if (o->samples_y && o->nsample_y < ny && check_map(o->samples_y, o->nsample_y, ny, err))
+  if (o->samples_y && o->nsample_y < ny &&
+      (check_map(o->samples_y, o->nsample_y, ny, err) || (o->bijective > 0 && !o->cellw_y)))
     return sm_error_set(err, SM_EINVAL, "zoomout: bad Y samples");
+  if (!(o->bijective >= 0) || !isfinite(o->bijective))
+    return sm_error_set(err, SM_EINVAL, "zoomout: bijective weight %g", o->bijective);
   return check_map(T0, pairs[0].x->n, pairs[0].y->n, err);
 }
 
@@ -406,48 +423,68 @@ static int zsample(zctx *z, sm_error *err) {
     memcpy(z->sqw, q->x->mass, (size_t)nsx * sizeof(double));
   }
   for (int32_t s = 0; s < nsx; s++) z->sqw[s] = sqrt(z->sqw[s]);
-  if (rc || nsy == z->ny) return rc;
-  z->cand = malloc((size_t)nsy * sizeof(int32_t));
-  if (!z->cand) return sm_error_set(err, SM_ENOMEM, "zoomout: %d Y samples", nsy);
-  if (o->samples_y) {
-    memcpy(z->cand, o->samples_y, (size_t)nsy * sizeof(int32_t));
-    return 0;
-  }
+  if (rc) return rc;
   double *cw = malloc((size_t)nsy * sizeof(double));
   if (!cw) return sm_error_set(err, SM_ENOMEM, "zoomout: %d Y samples", nsy);
-  rc = o->pos_y ? fps(o->pos_y, z->ny, 3, 3, q->y->mass, nsy, z->cand, cw, err)
-                : fps(q->UY, z->ny, q->k0, q->K, q->y->mass, nsy, z->cand, cw, err);
-  free(cw);
-  return rc;
+  if (nsy == z->ny) {
+    memcpy(cw, q->y->mass, (size_t)nsy * sizeof(double));
+  } else if (!(z->cand = malloc((size_t)nsy * sizeof(int32_t)))) {
+    rc = sm_error_set(err, SM_ENOMEM, "zoomout: %d Y samples", nsy);
+  } else if (o->samples_y) {
+    memcpy(z->cand, o->samples_y, (size_t)nsy * sizeof(int32_t));
+    if (o->cellw_y) memcpy(cw, o->cellw_y, (size_t)nsy * sizeof(double));
+  } else {
+    rc = o->pos_y ? fps(o->pos_y, z->ny, 3, 3, q->y->mass, nsy, z->cand, cw, err)
+                  : fps(q->UY, z->ny, q->k0, q->K, q->y->mass, nsy, z->cand, cw, err);
+  }
+  if (rc || o->bijective <= 0) {
+    free(cw);
+    return rc;
+  }
+  /* The Y -> X fit of the bijective variant runs on the Y samples, weighted like X's. */
+  for (int32_t s = 0; s < nsy; s++) cw[s] = sqrt(cw[s]);
+  z->sqw_y = cw;
+  z->nfit_y = nsy;
+  return 0;
 }
 
-/* Per pair: the weighted fit rows, their Gram factor (sampled fit only), the candidate
- * rows of Y. */
-static int zfit_setup(zctx *z, zpair *q, sm_error *err) {
-  int K = q->K;
-  q->UF = malloc((size_t)z->nfit * K * sizeof(double));
-  if (!q->UF) return sm_error_set(err, SM_ENOMEM, "zoomout: fit rows");
-  for (int32_t s = 0; s < z->nfit; s++) {
-    int32_t v = z->fit ? z->fit[s] : s;
-    for (int c = 0; c < K; c++) q->UF[(size_t)s * K + c] = z->sqw[s] * q->UX[(size_t)v * K + c];
+/* The weighted fit rows UF[s] = sqw[s] U[rows[s]] (rows NULL: s) of one side and, when
+ * the fit set is a sample (rows != NULL), the Cholesky factor *GF of their Gram. */
+static int zfit_rows(const double *U, int K, const int32_t *rows, int32_t nfit,
+                     const double *sqw, double **UF, double **GF, sm_error *err) {
+  *UF = malloc((size_t)nfit * K * sizeof(double));
+  if (!*UF) return sm_error_set(err, SM_ENOMEM, "zoomout: fit rows");
+  for (int32_t s = 0; s < nfit; s++) {
+    int32_t v = rows ? rows[s] : s;
+    for (int c = 0; c < K; c++) (*UF)[(size_t)s * K + c] = sqw[s] * U[(size_t)v * K + c];
   }
-  if (z->cand) {
-    q->UYc = malloc((size_t)z->ncand * K * sizeof(double));
-    if (!q->UYc) return sm_error_set(err, SM_ENOMEM, "zoomout: candidate rows");
-    for (int32_t s = 0; s < z->ncand; s++)
-      memcpy(q->UYc + (size_t)s * K, q->UY + (size_t)z->cand[s] * K, K * sizeof(double));
-  }
-  if (!z->fit) return 0; /* U M U^T = I on the whole shape */
-  q->GF = malloc((size_t)K * K * sizeof(double));
-  if (!q->GF) return sm_error_set(err, SM_ENOMEM, "zoomout: sample Gram");
+  if (!rows) return 0; /* U M U^T = I on the whole shape */
+  *GF = malloc((size_t)K * K * sizeof(double));
+  if (!*GF) return sm_error_set(err, SM_ENOMEM, "zoomout: sample Gram");
   /* UF row-major nfit x K is column-major K x nfit: G = UF_col UF_col^T. */
-  cblas_dsyrk(CblasColMajor, CblasLower, CblasNoTrans, K, z->nfit, 1.0, q->UF, K, 0.0, q->GF, K);
-  int info = LAPACKE_dpotrf(LAPACK_COL_MAJOR, 'L', K, q->GF, K);
+  cblas_dsyrk(CblasColMajor, CblasLower, CblasNoTrans, K, nfit, 1.0, *UF, K, 0.0, *GF, K);
+  int info = LAPACKE_dpotrf(LAPACK_COL_MAJOR, 'L', K, *GF, K);
   if (info)
     return sm_error_set(err, SM_ENUMERIC,
                         "zoomout: Gram of %d samples not positive definite at k=%d (column %d); "
                         "use more samples",
-                        z->nfit, K, info);
+                        nfit, K, info);
+  return 0;
+}
+
+/* Per pair: the weighted fit rows and their Gram factor (X's; Y's too when bijective),
+ * the candidate rows of Y. */
+static int zfit_setup(zctx *z, zpair *q, sm_error *err) {
+  int K = q->K;
+  int rc = zfit_rows(q->UX, K, z->fit, z->nfit, z->sqw, &q->UF, &q->GF, err);
+  if (!rc && z->sqw_y) rc = zfit_rows(q->UY, K, z->cand, z->nfit_y, z->sqw_y, &q->UFy, &q->GFy, err);
+  if (!rc && z->sqw_y && !(q->Dw = malloc((size_t)K * K * sizeof(double))))
+    rc = sm_error_set(err, SM_ENOMEM, "zoomout: Y -> X map");
+  if (rc || !z->cand) return rc;
+  q->UYc = malloc((size_t)z->ncand * K * sizeof(double));
+  if (!q->UYc) return sm_error_set(err, SM_ENOMEM, "zoomout: candidate rows");
+  for (int32_t s = 0; s < z->ncand; s++)
+    memcpy(q->UYc + (size_t)s * K, q->UY + (size_t)z->cand[s] * K, K * sizeof(double));
   return 0;
 }
 
@@ -461,14 +498,19 @@ static int zsetup(zctx *z, const sm_fmap_pair *pairs, const int32_t *T0, sm_erro
   int Kmax = 0;
   z->Dmax = 0;
   for (int p = 0; p < z->np; p++) {
-    z->Dmax += z->p[p].K;
+    z->Dmax += z->sqw_y ? 2 * z->p[p].K : z->p[p].K;
     if (z->p[p].K > Kmax) Kmax = z->p[p].K;
   }
+  int32_t zrows = z->nfit > z->nfit_y ? z->nfit : z->nfit_y;
   z->Tfit = malloc((size_t)z->nfit * sizeof(int32_t));
   z->EX = malloc((size_t)z->nx * z->Dmax * sizeof(double));
   z->EY = malloc((size_t)z->ny * z->Dmax * sizeof(double));
-  z->Z = malloc((size_t)z->nfit * Kmax * sizeof(double));
-  if (!z->Tfit || !z->EX || !z->EY || !z->Z)
+  z->Z = malloc((size_t)zrows * Kmax * sizeof(double));
+  if (z->sqw_y) {
+    z->Sfit = malloc((size_t)z->nfit_y * sizeof(int32_t));
+    z->Sq = malloc((size_t)z->ny * sizeof(int32_t));
+  }
+  if (!z->Tfit || !z->EX || !z->EY || !z->Z || (z->sqw_y && (!z->Sfit || !z->Sq)))
     return sm_error_set(err, SM_ENOMEM, "zoomout: embeddings (%d + %d rows x %d)", z->nx, z->ny,
                         z->Dmax);
   for (int32_t s = 0; s < z->nfit; s++) z->Tfit[s] = T0[z->fit ? z->fit[s] : s];
@@ -476,26 +518,38 @@ static int zsetup(zctx *z, const sm_fmap_pair *pairs, const int32_t *T0, sm_erro
   return 0;
 }
 
-/* P -> C in whitened coordinates on the fit set: Cw = G^-1 UF^T (sqrt(w) U_Y[Tfit]). */
-static int zfmap(zctx *z, zpair *q, sm_error *err) {
-  int k = q->k, K = q->K;
-  for (int32_t s = 0; s < z->nfit; s++) {
-    const double *u = q->UY + (size_t)z->Tfit[s] * K;
-    for (int c = 0; c < k; c++) z->Z[(size_t)s * k + c] = z->sqw[s] * u[c];
+/* P -> C in whitened coordinates on a fit set: W = G^-1 UF^T (sqrt(w) U_to[map]), k x k
+ * column-major, carrying coefficients of the map's target side to the fit side's. */
+static int zlsq(zctx *z, int k, int K, int32_t nfit, const double *UF, const double *GF,
+                const double *sqw, const double *U_to, const int32_t *map, double *W,
+                sm_error *err) {
+  for (int32_t s = 0; s < nfit; s++) {
+    const double *u = U_to + (size_t)map[s] * K;
+    for (int c = 0; c < k; c++) z->Z[(size_t)s * k + c] = sqw[s] * u[c];
   }
-  cblas_dgemm(CblasColMajor, CblasNoTrans, CblasTrans, k, k, z->nfit, 1.0, q->UF, K, z->Z, k,
-              0.0, q->Cw, k);
-  if (!q->GF) return 0;
-  int info = LAPACKE_dpotrs(LAPACK_COL_MAJOR, 'L', k, k, q->GF, K, q->Cw, k);
+  cblas_dgemm(CblasColMajor, CblasNoTrans, CblasTrans, k, k, nfit, 1.0, UF, K, z->Z, k, 0.0, W,
+              k);
+  if (!GF) return 0;
+  int info = LAPACKE_dpotrs(LAPACK_COL_MAJOR, 'L', k, k, GF, K, W, k);
   return info ? sm_error_set(err, SM_ENUMERIC, "zoomout: dpotrs failed (info %d)", info) : 0;
 }
 
+/* Cw from the X -> Y map on the X fit set; with a Y -> X map (bijective), Dw from it. */
+static int zfmap(zctx *z, zpair *q, sm_error *err) {
+  int rc = zlsq(z, q->k, q->K, z->nfit, q->UF, q->GF, z->sqw, q->UY, z->Tfit, q->Cw, err);
+  if (!rc && z->have_s)
+    rc = zlsq(z, q->k, q->K, z->nfit_y, q->UFy, q->GFy, z->sqw_y, q->UX, z->Sfit, q->Dw, err);
+  return rc;
+}
+
 /* Embeds the queries (X samples, or all X when full_q) and the candidates (Y samples, or
- * all Y when full_c). */
+ * all Y when full_c): a_i = u^X_i against b_j = Cw u^Y_j; once a Y -> X map exists
+ * (bijective), [a_i, wb Dw a_i] against [b_j, wb u^Y_j]. */
 static void zembed(zctx *z, int full_q, int full_c, int D) {
   int32_t nq = full_q || !z->fit ? z->nx : z->nfit;
   int32_t nc = full_c || !z->cand ? z->ny : z->ncand;
-  for (int p = 0, off = 0; p < z->np; off += z->p[p].k, p++) {
+  double wb = z->o->bijective;
+  for (int p = 0, off = 0; p < z->np; p++) {
     const zpair *q = &z->p[p];
     for (int32_t r = 0; r < nq; r++) {
       int32_t v = full_q || !z->fit ? r : z->fit[r];
@@ -505,7 +559,26 @@ static void zembed(zctx *z, int full_q, int full_c, int D) {
     }
     const double *UY = full_c || !z->cand ? q->UY : q->UYc;
     apply_map(UY, q->K, nc, q->k, q->Cw, q->w, z->EY + off, D);
+    off += q->k;
+    if (!z->have_s) continue;
+    apply_map(z->EX + off - q->k, D, nq, q->k, q->Dw, wb, z->EX + off, D);
+    for (int32_t r = 0; r < nc; r++) {
+      const double *u = UY + (size_t)r * q->K;
+      double *e = z->EY + (size_t)r * D + off;
+      for (int c = 0; c < q->k; c++) e[c] = q->w * wb * u[c];
+    }
+    off += q->k;
   }
+}
+
+/* Bijective: the Y -> X map on the Y fit set from the last assignment's Y -> query-row
+ * map (Sq over the candidates: the Y samples, or all of Y). */
+static void zkeep_yx(zctx *z, int full_q, int full_c) {
+  for (int32_t s = 0; s < z->nfit_y; s++) {
+    int32_t r = z->Sq[z->cand && full_c ? z->cand[s] : s];
+    z->Sfit[s] = full_q || !z->fit ? r : z->fit[r];
+  }
+  z->have_s = 1;
 }
 
 /* One iteration: fit every pair at its k, embed, assign. The last one maps all of X to all
@@ -516,7 +589,7 @@ static int ziterate(zctx *z, int t, int32_t *T, sm_error *err) {
   double t0 = sm_now();
   for (int p = 0; p < z->np && !rc; p++) {
     z->p[p].k = k_at(z, p, t);
-    D += z->p[p].k;
+    D += z->have_s ? 2 * z->p[p].k : z->p[p].k;
     rc = zfmap(z, &z->p[p], err);
   }
   if (rc) return rc;
@@ -526,10 +599,17 @@ static int ziterate(zctx *z, int t, int32_t *T, sm_error *err) {
   int32_t nq = last || !z->fit ? z->nx : z->nfit;
   int32_t nc = full_c || !z->cand ? z->ny : z->ncand;
   int32_t *out = last ? T : z->Tfit;
-  if (last && z->T_yx) /* the last iteration maps all of X to all of Y: both ways at once */
+  if (z->Sq) { /* bijective: both ways every time, the Y -> X map feeds the next fit */
+    rc = assign_both(z->EY, nc, z->EX, nq, D, &z->o->knn, out, z->Sq, err);
+    if (!rc && !full_c && z->cand)
+      for (int32_t i = 0; i < nq; i++) out[i] = z->cand[out[i]];
+    if (!rc && last && z->T_yx) memcpy(z->T_yx, z->Sq, (size_t)z->ny * sizeof(int32_t));
+    if (!rc) zkeep_yx(z, last, full_c);
+  } else if (last && z->T_yx) { /* the last iteration maps all of X to all of Y: both ways */
     rc = assign_both(z->EY, nc, z->EX, nq, D, &z->o->knn, out, z->T_yx, err);
-  else
+  } else {
     rc = assign(z->EY, nc, z->EX, nq, D, full_c ? NULL : z->cand, &z->o->knn, out, err);
+  }
   z->st.t_fmap += t1 - t0;
   z->st.t_embed += t2 - t1;
   z->st.t_knn += sm_now() - t2;

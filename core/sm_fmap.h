@@ -43,6 +43,17 @@
  *   adjoint assignment of the same functional map, found in the same pass over the
  *   distances as the last iteration's assignment (sm_knn_query_both).
  *   C_out (optional) is the C whose point map is the returned T (the final iteration's).
+ *   Bijective variant (opts.bijective = w > 0; Ren et al. 2021, "Discrete optimization for
+ *   shape matching"): a second map D (X coefficients to Y coefficients) is fitted from a
+ *   Y -> X point map S on the Y fit set (the Y samples, weighted by their cells like X's),
+ *   and both point maps come from one nearest-neighbour problem between
+ *     a_i = [u^X_i, w D u^X_i]   and   b_j = [C u^Y_j, w u^Y_j]:
+ *   T[i] = argmin_j |a_i - b_j| (C's properness plus D's), S[j] = argmin_i |a_i - b_j|, so
+ *   the two maps are pulled toward each other's inverse. The first iteration has no S yet
+ *   and runs as plain ZoomOut, whose adjoint assignment starts S (a Y -> X map handed in
+ *   was tried: no better on the gorilla pairs, and a noisy one spoiled an exact T on a
+ *   test blob). About twice the kNN
+ *   work per iteration. With samples_y given, cellw_y must be too.
  *
  * Contract
  *   Bases are borrowed, read only; all pairs must share the X mesh (same n and mesh_hash)
@@ -101,6 +112,9 @@ typedef struct sm_zoomout_opts {
   const int32_t *samples_x;
   const double *cellw_x;
   const int32_t *samples_y;
+  const double *cellw_y; /* the masses of samples_y's cells (needed when bijective) */
+  /* Bijective variant: the weight of the bijectivity term (0 = off; see above). */
+  double bijective;
   sm_knn_opts knn;       /* nearest-neighbour strategy */
   int (*cancel)(void *ud);
   void *cancel_ud;

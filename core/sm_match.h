@@ -26,6 +26,10 @@
  *     confidence, between species (gorilla -> human); the tips put such a pair in the
  *     right basin. Costs one match per hypothesis, so only doubtful maps pay for it;
  *     SM_EXT_ALWAYS also searches confident ones (exhaustive mode), SM_EXT_OFF never.
+ *   bijective pass (default on; opts.bijective = its weight, 0 = off): the kept map is
+ *     refined once more, ZoomOut from k0 in its bijective form (sm_fmap.h: the Y -> X map
+ *     is fitted too and both point maps come from one nearest-neighbour problem). Tip
+ *     hypotheses are judged before it; only the kept map pays for it.
  *   confidence (every result; sm_confidence.h): max(0, orientation) x continuity x cycle
  *     consistency of the final maps, in [0, 1], from the shapes and maps alone.
  *
@@ -102,6 +106,7 @@ typedef struct sm_match_opts {
   int sinkhorn_levels; /* refinement variant: this many k-steps carried by the Sinkhorn
                           plan (soft) before the hard ZoomOut; 0 = off (default 2) */
   int samples;      /* farthest-point samples for intermediate refinement iterations */
+  double bijective; /* the bijective pass's weight (see above); default 1, 0 = off */
   int orientation_fix; /* try the other orientation when the result looks mirrored */
   int multi_start;  /* also refine from the other init, keep the smoother map (see below) */
   int global;       /* 1: global hypothesis search (see above); 2: also orderings */

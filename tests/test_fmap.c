@@ -485,8 +485,9 @@ typedef struct zcase {
   sm_fmap_pair pr[2];
 } zcase;
 
+/* bij > 0: the bijective variant with that weight. */
 static void run_zoomout_case(const shape_pair *s, const zcase *c, int nsample, int nsy,
-                             int noisy) {
+                             int noisy, double bij) {
   int32_t n = s->mx->nv, *T = malloc((size_t)n * sizeof *T), *Tyx = malloc((size_t)n * sizeof *T);
   if (noisy)
     noisy_start(s->mx, s->truth, 0.3, 777, T);
@@ -499,6 +500,7 @@ static void run_zoomout_case(const shape_pair *s, const zcase *c, int nsample, i
   o.nsample_y = nsy;
   o.pos_x = s->mx->V;
   o.pos_y = s->my->V;
+  o.bijective = bij;
   double C0[40 * 40], C1[40 * 40];
   double *Cs[2] = {C0, C1};
   sm_zoomout_stats st;
@@ -509,13 +511,13 @@ static void run_zoomout_case(const shape_pair *s, const zcase *c, int nsample, i
   int wrong = count_diff(T, s->truth, n), wrong_yx = 0;
   for (int32_t i = 0; i < n; i++) wrong_yx += Tyx[s->truth[i]] != i;
   double me = mean_error(s->my, T, s->truth, n);
-  fprintf(stderr, "zoomout %-8s samples %4d/%4d start %4d wrong -> %d wrong (yx %d), mean err %.2e, "
-          "%d it, %.3f s\n", c->name, nsample, nsy, wrong0, wrong, wrong_yx, me, st.iterations,
-          st.t_total);
+  fprintf(stderr, "zoomout %-8s bij %g samples %4d/%4d start %4d wrong -> %d wrong (yx %d), "
+          "mean err %.2e, %d it, %.3f s\n", c->name, bij, nsample, nsy, wrong0, wrong, wrong_yx,
+          me, st.iterations, st.t_total);
   /* Sampling Y blurs the intermediate maps (sm_fmap.h): a few vertices may stay a ring off. */
   int tol = nsy ? n / 20 : 0;
-  CHECK_MSG(wrong <= tol && wrong_yx <= tol, "%s from %s: %d (%d) of %d vertices wrong",
-            c->name, noisy ? "noisy" : "exact", wrong, wrong_yx, n);
+  CHECK_MSG(wrong <= tol && wrong_yx <= tol, "%s bij %g from %s: %d (%d) of %d vertices wrong",
+            c->name, bij, noisy ? "noisy" : "exact", wrong, wrong_yx, n);
   CHECK(me < (nsy ? 2e-3 : 1e-12));
   if (nsy) {
     free(T);
@@ -544,12 +546,14 @@ static void test_zoomout_permuted(void) {
       {"hybrid", 2, {{s.lbx, s.lby, 40, 6, 1.0}, {s.elx, s.ely, 30, 6, 1.0}}},
   };
   for (int c = 0; c < 3; c++) {
-    run_zoomout_case(&s, &cases[c], 0, 0, 0);   /* exact start stays exact */
-    run_zoomout_case(&s, &cases[c], 300, 0, 0); /* also with sampled iterations */
-    run_zoomout_case(&s, &cases[c], 0, 0, 1);   /* noisy start converges */
-    run_zoomout_case(&s, &cases[c], 300, 0, 1);
-    run_zoomout_case(&s, &cases[c], 300, 300, 0); /* Y sampled too */
-    run_zoomout_case(&s, &cases[c], 300, 300, 1);
+    for (int b = 0; b < 2; b++) { /* plain, bijective */
+      run_zoomout_case(&s, &cases[c], 0, 0, 0, b);   /* exact start stays exact */
+      run_zoomout_case(&s, &cases[c], 300, 0, 0, b); /* also with sampled iterations */
+      run_zoomout_case(&s, &cases[c], 0, 0, 1, b);   /* noisy start converges */
+      run_zoomout_case(&s, &cases[c], 300, 0, 1, b);
+      run_zoomout_case(&s, &cases[c], 300, 300, 0, b); /* Y sampled too */
+      run_zoomout_case(&s, &cases[c], 300, 300, 1, b);
+    }
   }
   free_pair(&s);
 }
@@ -578,6 +582,18 @@ static void test_zoomout_errors(void) {
   CHECK(sm_zoomout(&pr, 1, &o, T, T, NULL, NULL, &st, &err) == SM_ECANCELED);
   CHECK(st.iterations == 2);
   o.cancel = NULL;
+  o.bijective = NAN;
+  CHECK(sm_zoomout(&pr, 1, &o, T, T, NULL, NULL, NULL, &err) == SM_EINVAL);
+  o.bijective = 1;
+  int32_t *ys = malloc(6 * sizeof *ys);
+  for (int i = 0; i < 6; i++) ys[i] = i;
+  o.nsample_y = 6;
+  o.samples_y = ys; /* without cellw_y: the Y -> X fit has no weights */
+  CHECK(sm_zoomout(&pr, 1, &o, T, T, NULL, NULL, NULL, &err) == SM_EINVAL);
+  o.nsample_y = 0;
+  o.samples_y = NULL;
+  o.bijective = 0;
+  free(ys);
   o.nsample_x = 5; /* fewer samples than functions: the sampled fit is singular */
   CHECK(sm_zoomout(&pr, 1, &o, T, T, NULL, NULL, NULL, &err) == SM_ENUMERIC);
   free(T);
