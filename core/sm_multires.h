@@ -68,6 +68,10 @@ enum sm_multires_mode { SM_MULTIRES_AUTO = 0, SM_MULTIRES_ON = 1, SM_MULTIRES_OF
 #define SM_MULTIRES_RING 2          /* candidate radius of the fine extraction, coarse edges */
 #define SM_MULTIRES_FINE_ITERS 2    /* fine-level refits of the functional map */
 #define SM_MULTIRES_MAX_ASPECT 10.0 /* aspect-ratio bound of the decimation (sm_deform.h) */
+/* Version of the decimation's algorithm: the coarse mesh, so everything computed on it,
+ * changes with it. Caches of coarse levels key on it (2: the lazy legality checks of
+ * 9dfbfb8). */
+#define SM_MULTIRES_DECIMATION 2
 
 typedef struct sm_multires_opts {
   int mode;          /* enum sm_multires_mode (default AUTO) */

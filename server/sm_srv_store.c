@@ -158,7 +158,7 @@ static int entry_file_intact(const sm_store *st, const entry *e) {
   return file_sig_of(p, &g) == 0 && !memcmp(&g, &e->sig, sizeof g);
 }
 
-/* level: "" at full resolution, else "mr<nv>.a<bits>." (level_tag) */
+/* level: "" at full resolution, else "mr<nv>.a<bits>.d<version>." (level_tag) */
 static void basis_path(const sm_store *st, const char *hex, const char *level,
                        const sm_basis_spec *spec, char *out, size_t n) {
   char name[128];
@@ -169,7 +169,11 @@ static void basis_path(const sm_store *st, const char *hex, const char *level,
 static void level_tag(const sm_store_key *key, char *out, size_t n) {
   uint64_t bits;
   memcpy(&bits, &key->max_aspect, sizeof bits);
-  if (key->coarse_nv) snprintf(out, n, "mr%d.a%016llx.", key->coarse_nv, (unsigned long long)bits);
+  /* The decimation's version too: two daemon versions sharing a store would otherwise
+   * each take the other's coarse bases for corrupt and delete them. */
+  if (key->coarse_nv)
+    snprintf(out, n, "mr%d.a%016llx.d%d.", key->coarse_nv, (unsigned long long)bits,
+             SM_MULTIRES_DECIMATION);
   else snprintf(out, n, "%s", "");
 }
 

@@ -11,10 +11,12 @@
  *     bases/<id-hex>.<spec>.v<format>.smb          one computed basis (sm_basis_save:
  *                                                  versioned, XXH3-checksummed); <spec> is
  *                                                  sm_basis_spec_name, e.g. el.k100.eta<bits>
- *     bases/<id-hex>.mr<nv>.a<bits>.<spec>.v<format>.smb  a basis of the shape's coarse
- *                                                  level (multi-resolution MATCH): decimated
- *                                                  to <nv> vertices with aspect bound <bits>
- *                                                  (the f64's bits in hex)
+ *     bases/<id-hex>.mr<nv>.a<bits>.d<dec>.<spec>.v<format>.smb  a basis of the shape's
+ *                                                  coarse level (multi-resolution MATCH):
+ *                                                  decimated to <nv> vertices with aspect
+ *                                                  bound <bits> (the f64's bits in hex) by
+ *                                                  decimation version <dec>
+ *                                                  (SM_MULTIRES_DECIMATION)
  *     Every file is written by sm_file_write_atomic (core/sm_basis_io.c: a unique temp
  *     name in the same directory, fsynced, renamed over its final name, the directory
  *     fsynced), so a crash leaves either the old state or the complete new file. At
