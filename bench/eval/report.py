@@ -373,8 +373,11 @@ HARD_SETS = [("gorilla", "gorilla -> human (tosca_nonisometric_dev, 45)"),
 
 def section_hard(out, md):
     md.append("## 6. Hard pairs, no landmarks, and the confidence of each map\n")
-    runs = [("default (tip search when doubtful)", load(out, "hard_pairs.json")),
-            ("tip search off (--extremities 0)", load(out, "hard_pairs_notips.json")),
+    runs = [("default (tip search when doubtful, then the bijective pass)",
+             load(out, "hard_pairs.json")),
+            ("before the bijective pass (--bijective 0)", load(out, "hard_pairs_nobij.json")),
+            ("tip search off (--extremities 0; before the bijective pass)",
+             load(out, "hard_pairs_notips.json")),
             ("global search (opt-in; run before the block eigensolver)",
              load(out, "hard_pairs_global.json"))]
     runs = [(n, r) for n, r in runs if r]
@@ -384,7 +387,9 @@ def section_hard(out, md):
     md.append("`bench/bench_hard` (see its header): the pipeline with no landmarks on every pair, "
               "bases cached, two pairs at a time on the 2 cores (one BLAS thread each), "
               "errors with the `eval_map.py` definitions. Confidence AUROC: probability that "
-              "a good map (error < 0.05) gets a higher confidence than a failed one (> 0.1).\n")
+              "a good map (error < 0.05) gets a higher confidence than a failed one (> 0.1). "
+              "Times depend on the machine's load, which other jobs set: the default run's "
+              "load average is in its JSON (`loadavg`); compare times within a run.\n")
     rows = []
     for name, r in runs:
         for key, title in HARD_SETS:
