@@ -34,7 +34,6 @@ both are cached in --work. Writes OUT/spectral_study.json and prints the table.
 import argparse
 import json
 import os
-import subprocess
 import sys
 
 import numpy as np
@@ -63,18 +62,9 @@ def eigenvalues(tool, files, cache_path, env, hks=False):
         with open(cache_path) as f:
             cache = json.load(f)
     todo = [f for f in files if f not in cache]
-    half = (len(todo) + 1) // 2
     flags = ["--hks"] if hks else []
-    procs = [subprocess.Popen([tool, "shapedna", "-k", "100"] + flags + part, env=env,
-                              stdout=subprocess.PIPE, text=True)
-             for part in (todo[:half], todo[half:]) if part]
-    for p in procs:
-        out, _ = p.communicate()
-        if p.returncode:
-            raise RuntimeError("eval_tool shapedna failed")
-        for line in out.splitlines():
-            rec = json.loads(line)
-            cache[rec["file"]] = rec if hks else rec["eig"]
+    for f, rec in suite.shapedna_records(tool, ["-k", "100"] + flags, todo, env).items():
+        cache[f] = rec if hks else rec["eig"]
     with open(cache_path, "w") as f:
         json.dump(cache, f)
     return {f: cache[f] if hks else np.array(cache[f]) for f in files}

@@ -276,20 +276,9 @@ class Suite:
         return rows
 
     def shapedna(self, files):
-        """ShapeDNA signatures, the list split over two eval_tool processes (one per core)."""
-        half = (len(files) + 1) // 2
-        procs = [subprocess.Popen([self.eval_tool, "shapedna"] + part, env=self.env,
-                                  stdout=subprocess.PIPE, text=True)
-                 for part in (files[:half], files[half:]) if part]
-        sig = {}
-        for p in procs:
-            out, _ = p.communicate()
-            if p.returncode:
-                raise RuntimeError("eval_tool shapedna failed")
-            for line in out.splitlines():
-                rec = json.loads(line)
-                sig[rec["file"]] = np.array(rec["eig"])
-        return [sig[f] for f in files]
+        """ShapeDNA signatures of files, in order."""
+        recs = shapedna_records(self.eval_tool, [], files, self.env)
+        return [np.array(recs[f]["eig"]) for f in files]
 
     def classify(self, classes=None, configs=None, name="classify"):
         classes = classes or self.classes
@@ -404,6 +393,24 @@ class Suite:
 
 
 # ---- scores ---------------------------------------------------------------------------------
+def shapedna_records(tool, args, files, env):
+    """`eval_tool shapedna ARGS FILE...` with the list split over two processes (one per
+    core): its JSON record per file, keyed by file."""
+    half = (len(files) + 1) // 2
+    procs = [subprocess.Popen([tool, "shapedna"] + args + part, env=env,
+                              stdout=subprocess.PIPE, text=True)
+             for part in (files[:half], files[half:]) if part]
+    recs = {}
+    for p in procs:
+        out, _ = p.communicate()
+        if p.returncode:
+            raise RuntimeError("eval_tool shapedna failed")
+        for line in out.splitlines():
+            rec = json.loads(line)
+            recs[rec["file"]] = rec
+    return recs
+
+
 def cosine_distance(a, b):
     return float(1 - a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
 
