@@ -224,4 +224,5 @@ void sm_distance_match_opts(sm_match_opts *o) {
   o->want_yx = 1;
   o->orientation_fix = 0;
   o->extremities = SM_EXT_OFF;
+  o->bijective = 0;
 }

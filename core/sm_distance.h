@@ -84,6 +84,7 @@ int sm_shape_distance_ex(const sm_shape *x, const sm_shape *y, const int32_t *T_
 
 /* Adjusts matching options for a distance: both maps (want_yx), no tip search (it fires
  * on the low-confidence maps of pairs of different classes, at one match per hypothesis),
+ * no bijective pass (about 40% more CPU per pair, for maps the shipped distance weighs 0),
  * and no mirror check (orientation_fix = 0). The check reruns the refinement from the map
  * composed with the target's self-symmetry when the map looks mirrored: up to a second
  * match, and it fires
