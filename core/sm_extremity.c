@@ -178,6 +178,41 @@ static double pair_cost(double gx, double gy) {
   return isfinite(gx) == isfinite(gy) ? 0 : EXT_SPLIT_COST;
 }
 
+/* Gromov product (a|b)_c = (d(c,a) + d(c,b) - d(a,b)) / 2: how far from c the paths to a
+ * and to b part. */
+static double gromov(const sm_ext_set *s, int c, int a, int b) {
+  return (s->dist[c][a] + s->dist[c][b] - s->dist[a][b]) / 2;
+}
+
+/* The fraction of comparisons (a|b)_c < (a'|b')_c, over the assigned tips, that the
+ * assignment reverses. Where paths part is the shape's skeleton: a human's and a gorilla's
+ * arms part near the head and their legs far from it, whatever their lengths, so the
+ * order survives the change of proportions that misleads AGD and raw distances (which
+ * rank a gorilla's long arms as a human's legs). Rank of the first assignment right by the
+ * ground truth (nearest truth point to each tip), without / with this term: 45 gorilla ->
+ * human pairs, first in 14 / 21, within the 4 kept 36 / 38; 20 man -> woman pairs, within
+ * the first 2 (a left/right twin ties) 12 / 20. */
+static double ext_order_cost(const ext_search *q) {
+  int n = 0, bad = 0, m = q->m;
+  for (int c = 0; c < m; c++)
+    for (int p1 = 0; p1 < m * m; p1++) {
+      int a = p1 / m, b = p1 % m;
+      if (a >= b || a == c || b == c) continue;
+      double gx = gromov(q->x, q->px[c], q->px[a], q->px[b]);
+      double gy = gromov(q->y, q->py[c], q->py[a], q->py[b]);
+      for (int p2 = p1 + 1; p2 < m * m; p2++) {
+        int a2 = p2 / m, b2 = p2 % m;
+        if (a2 >= b2 || a2 == c || b2 == c) continue;
+        double dx = gx - gromov(q->x, q->px[c], q->px[a2], q->px[b2]);
+        double dy = gy - gromov(q->y, q->py[c], q->py[a2], q->py[b2]);
+        if (!isfinite(dx) || !isfinite(dy)) continue;
+        n++;
+        bad += (dx > 0) != (dy > 0);
+      }
+    }
+  return n ? (double)bad / n : 0;
+}
+
 static double ext_cost(const ext_search *q) {
   double u = 0, g = 0;
   int np = 0;
@@ -186,7 +221,7 @@ static double ext_cost(const ext_search *q) {
     for (int b = a + 1; b < q->m; b++, np++)
       g += pair_cost(q->x->dist[q->px[a]][q->px[b]], q->y->dist[q->py[a]][q->py[b]]);
   }
-  return u / q->m + (np ? g / np : 0);
+  return u / q->m + (np ? g / np : 0) + ext_order_cost(q);
 }
 
 /* Insert the current assignment into the sorted best list if it is cheap enough. */

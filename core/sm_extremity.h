@@ -8,7 +8,8 @@
  *     radius SM_EXT_RADIUS of themselves (unit-area shapes). AGD is a pose-invariant
  *     "how far out" measure; tips are where limbs end.
  *   Hypotheses: injective assignments of min(nx, ny, SM_EXT_ASSIGN) tips, scored by how
- *     well they keep the tips' normalized AGD and their pairwise geodesic distances; the
+ *     well they keep the tips' normalized AGD, their pairwise geodesic distances and the
+ *     order of where the paths between them part (Gromov products); the
  *     lowest costs come first. A bilaterally symmetric shape gives several near-equal
  *     costs (left/right swaps): the caller refines each and decides by an energy of the
  *     refined maps (sm_match: the confidence).
@@ -49,7 +50,8 @@ typedef struct sm_ext_set {
 } sm_ext_set;
 
 typedef struct sm_ext_hypothesis {
-  double cost; /* mean |AGD difference| + mean |pairwise distance difference| */
+  double cost; /* mean |AGD difference| + mean |pairwise distance difference| + the
+                  fraction of Gromov-product comparisons reversed (sm_extremity.c) */
   int m;       /* tips assigned */
   int32_t pairs[2 * SM_EXT_ASSIGN]; /* (vertex of X, vertex of Y) per tip */
 } sm_ext_hypothesis;

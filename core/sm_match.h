@@ -141,7 +141,8 @@ typedef struct sm_match_result {
                                started from the h-th cheapest tip assignment won */
   double distortion;        /* geodesic distortion of T and T_yx (mean; sm_confidence.h),
                                measured by the tip search only; 0 when it did not run */
-  double turns;             /* turn agreement of T (sm_map_turns), tip search only */
+  double turns;             /* turn agreement of T and T_yx (mean of both; sm_map_turns),
+                               tip search only */
   double t_init, t_refine;  /* seconds; t_init includes the tip search, t_refine is the
                                winning map's refinement */
 } sm_match_result;
