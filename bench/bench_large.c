@@ -57,11 +57,21 @@ typedef struct spec {
   const pair_spec *pair;    /* K_PAIR */
 } spec;
 
+static int g_fine_iters = -1; /* --fine-iters: multires fine refits (-1 = default) */
+static int g_diag;            /* --diag: a line of the coarse match's figures per case */
+static double g_max_aspect;  /* --max-aspect: the decimation's bound (0 = default) */
+static int g_coarse_tips = -1; /* --coarse-tips 0|1: sm_multires_opts.coarse_tips */
+static int g_multi_start = -1, g_tips = -1; /* --multi-start 0|1, --tips 0|1|2 (-1 = default) */
+
 typedef struct outcome {
   int ok;
   int32_t nx, ny, ncx, ncy, skipped;
   double t_read, t_prep, t_dec, t_coarse, t_match, t_prolong, t_total;
   double exact, geo_mean, confidence;
+  /* --diag: the coarse sm_match's own figures (multires) or the direct match's */
+  double c_conf, c_dirichlet, c_geo; /* c_geo: the coarse map alone carried to the fine
+                                        vertices (owner -> coarse image -> its fine vertex) */
+  int c_ext_tried, c_ext_h, c_flipped;
   long maxrss_kb;
   double cpu;  /* user + system CPU seconds of the case's process */
   char msg[256];
@@ -137,6 +147,51 @@ static int make_case(const spec *s, sm_mesh **X, sm_mesh **Y, sm_gt **gt, sm_err
   return rc;
 }
 
+/* Mean geodesic error of map (input numbering, -1 = undefined) over the GT pairs where it
+ * is defined (cleaning drops unreferenced vertices: the dragon's 43 map to -1 and count as
+ * not exact); -1 on failure. */
+static double mean_geo_error(const sm_mesh *X, const sm_mesh *Y, const int32_t *map,
+                             const sm_gt *gt, const char *name) {
+  sm_error err;
+  double *e = malloc((size_t)gt->n * sizeof *e);
+  sm_gt def = {0, malloc((size_t)gt->n * sizeof(int32_t)), malloc((size_t)gt->n * sizeof(int32_t))};
+  for (int64_t k = 0; k < gt->n; k++)
+    if (map[gt->src[k]] >= 0) def.src[def.n] = gt->src[k], def.tgt[def.n++] = gt->tgt[k];
+  sm_geo_stats st;
+  int32_t *m0 = malloc((size_t)X->nv * sizeof *m0); /* the call checks every entry */
+  for (int32_t i = 0; i < X->nv; i++) m0[i] = map[i] < 0 ? 0 : map[i];
+  int rc = sm_geodesic_errors(Y, m0, X->nv, &def, 1, e, &err);
+  free(m0);
+  if (!rc) rc = sm_geo_summarize(e, def.n, &st, &err);
+  free(def.src);
+  free(def.tgt);
+  free(e);
+  if (rc) fprintf(stderr, "%s: geodesic errors: %s\n", name, err.msg);
+  return rc ? -1 : st.mean;
+}
+
+/* The coarse map alone on the fine vertices (input numbering): fine x -> its coarse owner
+ * -> the coarse image -> the fine vertex of Y with the largest weight on that coarse vertex
+ * (a coarse vertex no fine vertex leans on keeps the first fine vertex located on it, or
+ * any vertex when none is). */
+static int32_t *coarse_only_map(const sm_multires_shape *x, const sm_multires_shape *y,
+                                const int32_t *Tc) {
+  int32_t ncy = y->coarse->mesh->nv, nx = x->mesh->nv;
+  int32_t *rep = malloc((size_t)ncy * sizeof *rep), *T = malloc((size_t)nx * sizeof *T);
+  double *w = malloc((size_t)ncy * sizeof *w);
+  int32_t *out = malloc((size_t)x->mesh->n_input * sizeof *out);
+  for (int32_t v = 0; v < ncy; v++) rep[v] = 0, w[v] = -1;
+  for (int32_t i = 0; i < y->mesh->nv; i++)
+    for (int t = 0; t < 3; t++) {
+      int32_t v = y->tri[3 * (size_t)i + t];
+      if (y->bary[3 * (size_t)i + t] > w[v]) w[v] = y->bary[3 * (size_t)i + t], rep[v] = i;
+    }
+  for (int32_t i = 0; i < nx; i++) T[i] = rep[Tc[x->owner[i]]];
+  sm_multires_to_input(x, y, T, out);
+  free(rep), free(T), free(w);
+  return out;
+}
+
 static void run_child(const spec *s, outcome *o) {
   sm_error err;
   sm_mesh *X = NULL, *Y = NULL;
@@ -150,17 +205,22 @@ static void run_child(const spec *s, outcome *o) {
   }
   o->nx = X->nv;
   o->ny = Y->nv;
-  int32_t *map = malloc((size_t)X->nv * sizeof *map);
+  int32_t *map = malloc((size_t)X->nv * sizeof *map), *cmap = NULL;
   sm_shape_opts so;
   sm_match_opts mo;
   sm_shape_opts_default(&so);
   sm_match_opts_default(&mo);
+  if (g_multi_start >= 0) mo.multi_start = g_multi_start;
+  if (g_tips >= 0) mo.extremities = g_tips;
   double t1 = sm_now();
   if (s->multires) {
     sm_multires_opts ro;
     sm_multires_opts_default(&ro);
     ro.mode = SM_MULTIRES_ON;
     if (s->coarse_nv) ro.coarse_nv = s->coarse_nv;
+    if (g_fine_iters >= 0) ro.fine_iters = g_fine_iters;
+    if (g_max_aspect > 0) ro.max_aspect = g_max_aspect;
+    if (g_coarse_tips >= 0) ro.coarse_tips = g_coarse_tips;
     sm_multires_shape *x = NULL, *y = NULL;
     sm_multires_result r;
     rc = sm_multires_shape_prepare(X, &so, &ro, &x, &err);
@@ -177,6 +237,12 @@ static void run_child(const spec *s, outcome *o) {
       o->ncy = y->coarse->mesh->nv;
       o->skipped = x->skipped_faces + y->skipped_faces;
       o->confidence = r.confidence;
+      o->c_conf = r.coarse.confidence;
+      o->c_dirichlet = r.coarse.dirichlet;
+      o->c_ext_tried = r.coarse.ext_tried;
+      o->c_ext_h = r.coarse.ext_hypothesis;
+      o->c_flipped = r.coarse.flipped;
+      cmap = coarse_only_map(x, y, r.coarse.T);
       sm_multires_result_free(&r);
     }
     sm_multires_shape_destroy(x);
@@ -195,6 +261,11 @@ static void run_child(const spec *s, outcome *o) {
       o->ncx = x->mesh->nv;
       o->ncy = y->mesh->nv;
       o->confidence = r.confidence;
+      o->c_conf = r.confidence;
+      o->c_dirichlet = r.dirichlet;
+      o->c_ext_tried = r.ext_tried;
+      o->c_ext_h = r.ext_hypothesis;
+      o->c_flipped = r.flipped;
       sm_match_result_free(&r);
     }
     sm_shape_destroy(x);
@@ -210,26 +281,12 @@ static void run_child(const spec *s, outcome *o) {
       exact += map[gt->src[k]] == gt->tgt[k];
     }
     o->exact = n ? (double)exact / n : 0;
-    /* Geodesic errors where the map is defined (cleaning drops unreferenced vertices:
-     * the dragon's 43 map to -1 and count as not exact above). */
-    double *e = malloc((size_t)gt->n * sizeof *e);
-    sm_gt def = {0, malloc((size_t)gt->n * sizeof(int32_t)), malloc((size_t)gt->n * sizeof(int32_t))};
-    for (int64_t k = 0; k < gt->n; k++)
-      if (map[gt->src[k]] >= 0) def.src[def.n] = gt->src[k], def.tgt[def.n++] = gt->tgt[k];
-    sm_geo_stats st;
-    int32_t *m0 = malloc((size_t)X->nv * sizeof *m0); /* the call checks every entry */
-    for (int32_t i = 0; i < X->nv; i++) m0[i] = map[i] < 0 ? 0 : map[i];
-    rc = sm_geodesic_errors(Y, m0, X->nv, &def, 1, e, &err);
-    free(m0);
-    if (!rc) rc = sm_geo_summarize(e, def.n, &st, &err);
-    free(def.src);
-    free(def.tgt);
-    if (rc) fprintf(stderr, "%s: geodesic errors: %s\n", s->name, err.msg);
-    o->geo_mean = rc ? -1 : st.mean;
-    free(e);
+    o->geo_mean = mean_geo_error(X, Y, map, gt, s->name);
+    if (cmap) o->c_geo = mean_geo_error(X, Y, cmap, gt, s->name);
     o->ok = 1;
   }
   free(map);
+  free(cmap);
   sm_gt_destroy(gt);
   sm_mesh_destroy(X);
   sm_mesh_destroy(Y);
@@ -303,6 +360,11 @@ static outcome bench(const spec *s, int reps) {
          s->name, s->multires ? "multires" : "direct", m->nx, m->ny, m->ncx, m->ncy, m->t_read,
          m->t_prep, m->t_dec, m->t_coarse, m->t_match, m->t_prolong, m->t_total, m->cpu, rss / 1024.0, m->exact,
          m->geo_mean, m->confidence, n);
+  if (g_diag)
+    printf("%-16s   %s: confidence %.3f dirichlet %.2f tips tried %d kept %d flipped %d%s",
+           "", s->multires ? "coarse match" : "match", m->c_conf, m->c_dirichlet, m->c_ext_tried,
+           m->c_ext_h, m->c_flipped, s->multires ? "" : "\n");
+  if (g_diag && s->multires) printf(" coarse map alone on the fine vertices: geo %.5f\n", m->c_geo);
   if (m->skipped) printf("%-16s (decimater left out %d non-manifold faces of the coarse proxies)\n", "", m->skipped);
   fflush(stdout);
   med = *m;
@@ -453,6 +515,12 @@ int main(int argc, char **argv) {
   for (int i = 1; i < argc; i++) {
     if (!strcmp(argv[i], "--reps") && i + 1 < argc) reps = atoi(argv[++i]);
     else if (!strcmp(argv[i], "--direct")) direct = 1;
+    else if (!strcmp(argv[i], "--diag")) g_diag = 1;
+    else if (!strcmp(argv[i], "--multi-start") && i + 1 < argc) g_multi_start = atoi(argv[++i]);
+    else if (!strcmp(argv[i], "--tips") && i + 1 < argc) g_tips = atoi(argv[++i]);
+    else if (!strcmp(argv[i], "--max-aspect") && i + 1 < argc) g_max_aspect = atof(argv[++i]);
+    else if (!strcmp(argv[i], "--coarse-tips") && i + 1 < argc) g_coarse_tips = atoi(argv[++i]);
+    else if (!strcmp(argv[i], "--fine-iters") && i + 1 < argc) g_fine_iters = atoi(argv[++i]);
     else if (!strcmp(argv[i], "--small")) small = 1;
     else if (!strcmp(argv[i], "--decimate")) decimate = 1;
     else if (!strcmp(argv[i], "--small-levels") && i + 1 < argc) {

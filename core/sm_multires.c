@@ -22,6 +22,7 @@ void sm_multires_opts_default(sm_multires_opts *o) {
   o->ring = SM_MULTIRES_RING;
   o->fine_iters = SM_MULTIRES_FINE_ITERS;
   o->max_aspect = SM_MULTIRES_MAX_ASPECT;
+  o->coarse_tips = SM_MULTIRES_COARSE_TIPS;
 }
 
 int sm_multires_wanted(const sm_multires_opts *o, int32_t nv_x, int32_t nv_y) {
@@ -33,11 +34,11 @@ int sm_multires_wanted(const sm_multires_opts *o, int32_t nv_x, int32_t nv_y) {
 static int check_mopts(const sm_multires_opts *o, sm_error *err) {
   if (o->mode < SM_MULTIRES_AUTO || o->mode > SM_MULTIRES_OFF || o->coarse_nv < 200 ||
       o->ring < 1 || o->threshold < 0 || o->fine_iters < 0 || !(o->max_aspect >= 1.5) ||
-      !isfinite(o->max_aspect))
+      !isfinite(o->max_aspect) || (o->coarse_tips != 0 && o->coarse_tips != 1))
     return sm_error_set(err, SM_EINVAL, "multires: mode %d, coarse_nv %d (>= 200), ring %d "
                         "(>= 1), threshold %d (>= 0), fine_iters %d (>= 0), max_aspect %g "
-                        "(>= 1.5) invalid", o->mode, o->coarse_nv, o->ring, o->threshold,
-                        o->fine_iters, o->max_aspect);
+                        "(>= 1.5), coarse_tips %d (0 or 1) invalid", o->mode, o->coarse_nv,
+                        o->ring, o->threshold, o->fine_iters, o->max_aspect, o->coarse_tips);
   return SM_OK;
 }
 
@@ -674,6 +675,7 @@ int sm_multires_match(const sm_multires_shape *x, const sm_multires_shape *y,
   int32_t nx = x->mesh->nv, ny = y->mesh->nv;
   sm_match_opts co = *o;
   co.want_yx = 1;
+  if (mo->coarse_tips && co.extremities == SM_EXT_WHEN_DOUBTFUL) co.extremities = SM_EXT_ALWAYS;
   int32_t *lm = NULL, *init = NULL, *rep = NULL;
   if (o->nlandmarks > 0) {
     lm = malloc((size_t)2 * o->nlandmarks * sizeof *lm);

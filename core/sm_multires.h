@@ -7,7 +7,8 @@
  *     coarse surface: the closest point of the nearest coarse triangle, as 3 coarse
  *     vertices and barycentric weights (the prolongation P, one row per fine vertex).
  *   match (per pair): sm_match on the two coarse shapes (the whole pipeline: descriptors,
- *     coarse map, Sinkhorn init, ZoomOut, mirror fix, tip search) gives the final
+ *     coarse map, Sinkhorn init, ZoomOut, mirror fix, tip search, by default whatever the
+ *     coarse map's confidence: SM_MULTIRES_COARSE_TIPS) gives the final
  *     functional map C in the refinement basis; its spectral embeddings (sm_fmap.h: a_i on
  *     X, b_j = C-aligned on Y) are prolonged to all fine vertices by P, and the point map
  *     is extracted there, ScalableZoomOut-style: each fine vertex of X takes the nearest b_j
@@ -68,6 +69,16 @@ enum sm_multires_mode { SM_MULTIRES_AUTO = 0, SM_MULTIRES_ON = 1, SM_MULTIRES_OF
 #define SM_MULTIRES_RING 2          /* candidate radius of the fine extraction, coarse edges */
 #define SM_MULTIRES_FINE_ITERS 2    /* fine-level refits of the functional map */
 #define SM_MULTIRES_MAX_ASPECT 10.0 /* aspect-ratio bound of the decimation (sm_deform.h) */
+/* The coarse match's tip search (sm_match.h): 1 = it runs whatever the coarse map's
+ * confidence when the match options ask for it "when doubtful" (the default), 0 = as asked.
+ * Why: the coarse match is the whole pipeline on a remeshed pair, and there its descriptor
+ * start lands a limb in a wrong basin on some decimations while the map's confidence stays
+ * above the direct path's search threshold (lion -> cat at 8 coarse levels: 2 of 8 maps at
+ * 0.056 against 0.037 direct, confidence 0.55-0.57, where right coarse maps of homer -> B
+ * score 0.61), so no threshold on that confidence separates them. The search costs about 4
+ * more coarse matches (5-6 s of CPU at 5,000 vertices) and the coarse match runs once per
+ * pair whatever the input's size. Figures: docs/RESULTS.md section 7. */
+#define SM_MULTIRES_COARSE_TIPS 1
 /* Version of the decimation's algorithm: the coarse mesh, so everything computed on it,
  * changes with it. Caches of coarse levels key on it (2: the lazy legality checks of
  * 9dfbfb8). */
@@ -80,6 +91,7 @@ typedef struct sm_multires_opts {
   int ring;          /* candidate radius (>= 1) */
   int fine_iters;    /* fine-level refits after the first extraction (>= 0) */
   double max_aspect; /* decimation's aspect-ratio bound (>= 1.5) */
+  int coarse_tips;   /* SM_MULTIRES_COARSE_TIPS above: 1 = search always, 0 = as asked */
 } sm_multires_opts;
 
 typedef struct sm_multires_shape {

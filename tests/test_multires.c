@@ -115,7 +115,10 @@ static double map_exact(const int32_t *T, const int32_t *gt, int32_t n) {
   return (double)k / n;
 }
 
-static void test_permuted(const sm_mesh *m, int32_t coarse_nv, const char *name) {
+/* has_tips: the shape has tips (limbs, head), so the coarse match's tip search, on by
+ * default whatever the coarse map's confidence (SM_MULTIRES_COARSE_TIPS), must have refined
+ * hypotheses even for this self-match, and the map must stay exact. */
+static void test_permuted(const sm_mesh *m, int32_t coarse_nv, const char *name, int has_tips) {
   sm_error err;
   int32_t *perm = malloc((size_t)m->nv * sizeof *perm), *inv = malloc((size_t)m->nv * sizeof *inv);
   tm_permutation(perm, m->nv, 4242);
@@ -152,6 +155,9 @@ static void test_permuted(const sm_mesh *m, int32_t coarse_nv, const char *name)
   CHECK_MSG(ex >= 0.99, "%s: only %.4f of the vertices exact", name, ex);
   CHECK_MSG(ey >= 0.99, "%s: only %.4f of the vertices exact (Y -> X)", name, ey);
   CHECK_MSG(r.confidence > 0.9, "%s: confidence %.3f", name, r.confidence);
+  if (has_tips)
+    CHECK_MSG(r.coarse.ext_tried > 0, "%s: the coarse tip search did not run (confidence %.3f)",
+              name, r.coarse.confidence);
   free(map), free(back), free(perm), free(inv);
   sm_multires_result_free(&r);
   sm_multires_shape_destroy(x);
@@ -224,6 +230,9 @@ static void test_options(void) {
   sm_multires_opts_default(&o);
   o.max_aspect = 1.0;
   CHECK(sm_multires_shape_prepare(s, &so, &o, &x, &err) == SM_EINVAL && !x);
+  sm_multires_opts_default(&o);
+  o.coarse_tips = 2;
+  CHECK(sm_multires_shape_prepare(s, &so, &o, &x, &err) == SM_EINVAL && !x);
   sm_mesh *d = NULL;
   CHECK(sm_mesh_decimate_proxy(s, 20, NAN, &d, NULL, &err) == SM_EINVAL && !d);
   sm_mesh_destroy(s);
@@ -284,7 +293,7 @@ int main(int argc, char **argv) {
   const double one[3] = {1, 1, 1};
   sm_error err;
   REQUIRE(sm_synth_blob(5, 0.2, 3, one, &blob, &err) == 0);
-  test_permuted(blob, 1000, "blob");
+  test_permuted(blob, 1000, "blob", 0);
   sm_mesh_destroy(blob);
   int real = (argc < 2 || strcmp(argv[1], "--synthetic-only")) && !getenv("SM_TEST_SYNTHETIC_ONLY");
   char buf[512];
@@ -292,7 +301,7 @@ int main(int argc, char **argv) {
   if (real && homer) {
     sm_mesh *h = NULL;
     REQUIRE(sm_mesh_read_file(homer, NULL, &h, &err) == 0);
-    test_permuted(h, 2000, "homerA");
+    test_permuted(h, 2000, "homerA", 1);
     sm_mesh_destroy(h);
   } else if (real) {
     fprintf(stderr, "../shared/data absent: homerA case skipped\n");
