@@ -35,7 +35,7 @@ static void usage(FILE *f) {
           "                   [--max-faces N] [--max-k K] [--default-k K]\n"
           "                   [--max-batch-items N] [--max-query-k N]\n"
           "                   [--prepare-timeout-ms MS] [--max-components N]\n"
-          "                   [--multires-coarse-nv N]\n"
+          "                   [--multires-coarse-nv N] [--prepare-on-put 0|1]\n"
           "  --config FILE reads 'key = value' lines, the keys being the long flags without\n"
           "    '--' (port = 7878, data-dir = /var/lib/shapematch, ...); '#' starts a comment;\n"
           "    an unknown key or a bad value is an error naming the line; flags given on the\n"
@@ -52,6 +52,10 @@ static void usage(FILE *f) {
           "    LIMIT_EXCEEDED naming the shape;\n"
           "  --multires-coarse-nv: vertices of the coarse level of MATCH's multi-resolution\n"
           "    path (default 5000, as the local shapematch match; PROTOCOL.md 5.7);\n"
+          "  --prepare-on-put 1 (default): after storing a new shape, PUT_SHAPE queues its\n"
+          "    preparation as a background job, run by at most threads - 1 workers and only\n"
+          "    when no request waits (none with --threads 1); 0: shapes are prepared by the\n"
+          "    first request that needs them;\n"
           "  --max-components: PUT_SHAPE refuses a mesh with more connected components after\n"
           "    cleaning (default 64; each component needs its own rigid modes);\n"
           "  --token may also come from $SHAPEMATCH_TOKEN (keeps it out of ps), or from the\n"
@@ -141,6 +145,7 @@ static int apply_opt(const char *key, const char *v, sm_srv_config *c, const cha
   NUM("prepare-timeout-ms", 0, 86400000, c->prepare_timeout_ms)
   NUM("max-components", 1, 1000000, c->max_components)
   NUM("multires-coarse-nv", 200, 10000000, c->multires_coarse_nv)
+  NUM("prepare-on-put", 0, 1, c->prepare_on_put)
   else {
     if (src->file) fprintf(stderr, "shapematchd: %s:%d: unknown key '%s'\n", src->file, src->line, key);
     else fprintf(stderr, "shapematchd: unknown flag --%s\n", key);
@@ -329,6 +334,8 @@ int main(int argc, char **argv) {
            strerror(errno));
     return 1;
   }
+  /* Background preparations (PUT_SHAPE): one worker always left for requests. */
+  if (s.cfg.prepare_on_put) sm_pool_set_background(s.pool, s.cfg.threads - 1, s.cfg.queue_len);
   sm_log("info", "listening", " port=%d bind=%s threads=%d cache_mb=%llu max_payload=%u "
          "metrics_port=%d auth=%d default_k=%d buffer_budget_mb=%llu",
          port, s.cfg.bind, s.cfg.threads, (unsigned long long)(s.cfg.cache_bytes >> 20),
@@ -345,6 +352,7 @@ int main(int argc, char **argv) {
     sm_log("warn", "exiting without joining workers", NULL);
     _exit(0);
   }
+  atomic_store(&s.bg_stop, 1); /* queued background preparations end at once */
   sm_pool_destroy(s.pool);
   sm_store_get_stats(s.store, &ss);
   sm_store_close(s.store);

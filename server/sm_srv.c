@@ -45,6 +45,7 @@ void sm_srv_config_default(sm_srv_config *c) {
   c->metrics_port = 0;
   c->default_k = 100;
   c->prepare_timeout_ms = 300000;
+  c->prepare_on_put = 1;
   c->max_components = 64;
   c->multires_coarse_nv = SM_MULTIRES_COARSE_NV; /* as the local match */
 }

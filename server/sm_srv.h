@@ -33,6 +33,7 @@
 #define SM_SRV_H
 
 #include <signal.h>
+#include <stdatomic.h>
 #include <stddef.h>
 #include <stdint.h>
 
@@ -59,6 +60,8 @@ typedef struct sm_srv_config {
   uint32_t max_components;  /* PUT refuses meshes with more connected components */
   int multires_coarse_nv;   /* MATCH's multi-resolution path: vertices of the coarse level
                                (default SM_MULTIRES_COARSE_NV) */
+  int prepare_on_put;       /* --prepare-on-put 0|1 (default 1): PUT_SHAPE queues the shape's
+                               preparation as a background job (sm_srv_exec.c) */
   uint8_t token[256];
   size_t token_len;
   int has_token;
@@ -86,6 +89,9 @@ typedef struct sm_server {
    * last malloc_trim, and connections whose reading waits for the budget. */
   uint64_t buf_used, buf_trim_mark;
   int n_budget_blocked;
+  /* Set once the loop has ended: background preparations still queued return at once and
+   * running ones are cancelled (their cancel callback reads it on a worker). */
+  _Atomic int bg_stop;
 } sm_server;
 
 /* sm_srv.c (not main.c, so no module depends on the program's entry point). */

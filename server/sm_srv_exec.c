@@ -127,16 +127,24 @@ static int fail_prepare(result *r, sm_job *j, int rc, const sm_error *err, const
   return fail_core(r, j, rc, err, full);
 }
 
-/* sm_store_acquire under the bound; r filled on failure (see fail_prepare). */
-static int acquire(sm_job *j, const uint8_t id[32], const sm_store_key *k, const char *what,
-                   uint32_t nf_detail, sm_prepared **out, sm_store_prep_info *info,
-                   result *r) {
+/* sm_store_acquire under the bound; r filled on failure (see fail_prepare). raw: the
+ * shape decoded by this request's PUT, or NULL. */
+static int acquire_raw(sm_job *j, const uint8_t id[32], const sm_store_key *k,
+                       const sm_mesh *raw, const char *what, uint32_t nf_detail,
+                       sm_prepared **out, sm_store_prep_info *info, result *r) {
   uint32_t bound = j->srv->cfg.prepare_timeout_ms;
   prep_guard g = {j, bound ? sm_srv_now_ns() + (uint64_t)bound * 1000000ull : 0, 0};
   sm_error err;
   sm_error_clear(&err);
-  int rc = sm_store_acquire(j->srv->store, id, k, prep_cancel_cb, &g, out, info, &err);
+  int rc = sm_store_acquire_ex(j->srv->store, id, k, raw, 0, prep_cancel_cb, &g, out, info,
+                               &err);
   return rc ? fail_prepare(r, j, rc, &err, what, id, nf_detail, &g) : 0;
+}
+
+static int acquire(sm_job *j, const uint8_t id[32], const sm_store_key *k, const char *what,
+                   uint32_t nf_detail, sm_prepared **out, sm_store_prep_info *info,
+                   result *r) {
+  return acquire_raw(j, id, k, NULL, what, nf_detail, out, info, r);
 }
 
 static sm_store_key default_key(const sm_server *s) {
@@ -144,6 +152,114 @@ static sm_store_key default_key(const sm_server *s) {
 }
 
 /* ------------------------------------------------------------------ PUT_SHAPE */
+
+/* Background preparation after PUT_SHAPE (--prepare-on-put, PROTOCOL.md 5.4): whoever
+ * stores a shape will match it, so its preparation starts as soon as it is stored
+ * instead of inside the first MATCH. It is a background pool job (sm_srv_pool.h): it runs
+ * only when no request waits for a worker and on at most threads - 1 workers, so
+ * requests always keep one; a request that needs the shape meanwhile either waits for it
+ * (the store's single-flight) or, when the job has not started yet, computes it itself
+ * (the job then finds it cached). The queue is bounded (--queue; past it PUT only stores,
+ * counted put_prepares_skipped). The job gets the mesh the PUT decoded, so the shape is
+ * decoded once (the memory held that way by queued jobs is bounded by BG_MESH_BYTES; past
+ * it a job decodes the file again). The key is the one a default MATCH involving the
+ * shape will need: the default bases at full resolution, or on the coarse level when the
+ * shape alone sends MATCH to the multi-resolution path (sm_multires_wanted). A failure is
+ * kept by the store and reported by the next request for that key
+ * (sm_store_acquire_ex); the bound --prepare-timeout-ms applies; at shutdown the queued
+ * jobs end at once and the running ones are cancelled (sm_server.bg_stop). */
+typedef struct bg_prep {
+  sm_pool_job base; /* first member */
+  sm_server *srv;
+  uint8_t id[32];
+  sm_store_key key;
+  sm_mesh *raw;      /* owned; NULL: read and decoded from the file */
+  uint64_t raw_bytes; /* charged to bg_mesh_bytes */
+  uint64_t until_ns; /* --prepare-timeout-ms, from the job's start; 0 = none */
+} bg_prep;
+
+#define BG_MESH_BYTES (256ull << 20)
+static _Atomic uint64_t bg_mesh_bytes;
+
+static int bg_cancel_cb(void *ud) {
+  const bg_prep *b = ud;
+  return atomic_load_explicit(&b->srv->bg_stop, memory_order_relaxed) ||
+         (b->until_ns && sm_srv_now_ns() > b->until_ns);
+}
+
+static void bg_run(sm_pool_job *pj) {
+  bg_prep *b = (bg_prep *)pj;
+  sm_store *st = b->srv->store;
+  char hex[65];
+  sm_hex(b->id, 32, hex);
+  if (atomic_load(&b->srv->bg_stop)) {
+    sm_met_add(&sm_met.bg_cancelled, 1);
+  } else if (!sm_store_cached(st, b->id, &b->key)) {
+    uint32_t bound = b->srv->cfg.prepare_timeout_ms;
+    b->until_ns = bound ? sm_srv_now_ns() + (uint64_t)bound * 1000000ull : 0;
+    sm_prepared *pr = NULL;
+    sm_store_prep_info info;
+    sm_error err;
+    sm_error_clear(&err);
+    int rc = sm_store_acquire_ex(st, b->id, &b->key, b->raw, 1, bg_cancel_cb, b, &pr, &info,
+                                 &err);
+    if (rc == SM_ECANCELED) {
+      sm_met_add(&sm_met.bg_cancelled, 1);
+    } else if (rc) {
+      sm_met_add(&sm_met.bg_failed, 1);
+      sm_log("warn", "background preparation failed", " id=%s code=%d err=\"%s\"", hex, rc,
+             err.msg);
+    } else if (!info.cached && !info.waited) {
+      sm_met_add(&sm_met.bg_prepared, 1);
+      sm_log("info", "background preparation done", " id=%s computed=%d loaded=%d", hex,
+             info.bases_computed, info.bases_loaded);
+    }
+    sm_store_release(st, pr);
+  }
+  atomic_fetch_sub(&bg_mesh_bytes, b->raw_bytes);
+  sm_mesh_destroy(b->raw);
+  free(b);
+}
+
+static uint64_t mesh_bytes(const sm_mesh *m) {
+  return (uint64_t)m->nv * 3 * sizeof(double) + (uint64_t)m->nf * 3 * sizeof(int32_t);
+}
+
+/* Queues id's background preparation; takes raw (may be NULL). */
+static void bg_schedule(sm_job *j, const uint8_t id[32], uint32_t nv, sm_mesh *raw) {
+  sm_server *s = j->srv;
+  bg_prep *b = s->cfg.prepare_on_put ? calloc(1, sizeof *b) : NULL;
+  if (!b) {
+    sm_mesh_destroy(raw);
+    return;
+  }
+  b->base.run = bg_run;
+  b->srv = s;
+  memcpy(b->id, id, 32);
+  b->key = default_key(s);
+  sm_multires_opts mo;
+  sm_multires_opts_default(&mo);
+  if (sm_multires_wanted(&mo, (int32_t)nv, 0))
+    b->key = sm_store_key_multires(&b->key, s->cfg.multires_coarse_nv);
+  if (raw) {
+    uint64_t sz = mesh_bytes(raw);
+    if (atomic_fetch_add(&bg_mesh_bytes, sz) + sz <= BG_MESH_BYTES) {
+      b->raw = raw;
+      b->raw_bytes = sz;
+    } else {
+      atomic_fetch_sub(&bg_mesh_bytes, sz);
+      sm_mesh_destroy(raw);
+    }
+  }
+  if (sm_store_cached(s->store, id, &b->key) || sm_pool_submit_bg(s->pool, &b->base)) {
+    if (!sm_store_cached(s->store, id, &b->key)) sm_met_add(&sm_met.bg_skipped, 1);
+    atomic_fetch_sub(&bg_mesh_bytes, b->raw_bytes);
+    sm_mesh_destroy(b->raw);
+    free(b);
+    return;
+  }
+  sm_met_add(&sm_met.bg_queued, 1);
+}
 
 static int op_put(sm_job *j, const uint8_t *p, size_t n, result *r) {
   sm_proto_put_req q;
@@ -153,7 +269,8 @@ static int op_put(sm_job *j, const uint8_t *p, size_t n, result *r) {
   sm_error_clear(&err);
   uint32_t nv = 0, nf = 0;
   int existed = 0;
-  rc = sm_store_put(j->srv->store, q.id, q.draco, q.draco_len, &nv, &nf, &existed, &err);
+  sm_mesh *raw = NULL; /* decoded by the store for a new shape: prepared from it */
+  rc = sm_store_put(j->srv->store, q.id, q.draco, q.draco_len, &nv, &nf, &existed, &raw, &err);
   if (rc == SM_ELIMIT)
     return fail(r, SM_ST_LIMIT_EXCEEDED, j->srv->cfg.max_vertices, "PUT_SHAPE: %s", err.msg);
   if (rc == SM_STORE_ECOMPONENTS)
@@ -168,10 +285,17 @@ static int op_put(sm_job *j, const uint8_t *p, size_t n, result *r) {
     sm_store_prep_info info;
     result pre;
     memset(&pre, 0, sizeof pre);
-    if (acquire(j, q.id, &k, "PUT_SHAPE prepare", 0, &pr, &info, &pre))
+    if (acquire_raw(j, q.id, &k, raw, "PUT_SHAPE prepare", 0, &pr, &info, &pre))
       sm_log("warn", "prepare after put failed", " id=%s status=%u err=\"%s\"", hex,
              pre.status, pre.msg);
     sm_store_release(j->srv->store, pr);
+    sm_mesh_destroy(raw);
+  } else {
+    uint32_t hv, hf;
+    int prepared = 0; /* a stored shape's default bases in memory or on disk */
+    if (existed) sm_store_has(j->srv->store, q.id, &hv, &hf, &prepared);
+    if (!prepared) bg_schedule(j, q.id, nv, raw);
+    else sm_mesh_destroy(raw);
   }
   sm_proto_put_resp o = {.n_vertices = nv, .n_faces = nf, .flags = existed ? SM_PUT_R_EXISTED : 0};
   memcpy(o.id, q.id, 32);
@@ -350,6 +474,9 @@ static int acquire_pair(sm_job *j, const uint8_t *x, const uint8_t *y, const sm_
   if (memcmp(x, y, 32) && sm_pool_threads(j->srv->pool) > 1 && !sm_store_cached(st, x, key) &&
       !sm_store_cached(st, y, key))
     a = side_start(j, y, key);
+  /* x computed elsewhere (PUT's background preparation, another request): this worker
+   * would only wait for it, so it takes y first; x's error still comes first. */
+  if (a && sm_store_busy(st, x, key) && side_claim(a)) side_run(a, 0);
   int fx = acquire(j, x, key, "x", 0, &c->px, &c->ix, r);
   if (!a) return fx ? -1 : acquire(j, y, key, "y", 1, &c->py, &c->iy, r);
   if (fx) atomic_store(&a->uj.cancel, 1); /* the pair has failed: y is not needed */

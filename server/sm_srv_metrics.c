@@ -65,6 +65,11 @@ uint32_t sm_met_stats(struct sm_store *st, sm_proto_stat *out, uint32_t cap) {
   put(out, cap, &n, "budget_blocks", sm_met_get(&sm_met.budget_blocks));
   put(out, cap, &n, "shed_overloaded", sm_met_get(&sm_met.shed_budget));
   put(out, cap, &n, "shed_idle", sm_met_get(&sm_met.shed_idle));
+  put(out, cap, &n, "put_prepares_queued", sm_met_get(&sm_met.bg_queued));
+  put(out, cap, &n, "put_prepares_skipped", sm_met_get(&sm_met.bg_skipped));
+  put(out, cap, &n, "put_prepares_done", sm_met_get(&sm_met.bg_prepared));
+  put(out, cap, &n, "put_prepares_failed", sm_met_get(&sm_met.bg_failed));
+  put(out, cap, &n, "put_prepares_cancelled", sm_met_get(&sm_met.bg_cancelled));
   return n;
 }
 

@@ -30,6 +30,10 @@ typedef struct sm_metrics {
   _Atomic uint64_t budget_blocks;         /* a read buffer could not grow: budget exhausted */
   _Atomic uint64_t shed_budget;           /* connections closed with OVERLOADED */
   _Atomic uint64_t shed_idle;             /* idle connections closed to admit a new one */
+  /* PUT_SHAPE's background preparations (sm_srv_exec.c): queued; not queued (queue full
+   * or off); that computed or loaded something; that failed (kept for the next request);
+   * cancelled (shutdown, --prepare-timeout-ms) */
+  _Atomic uint64_t bg_queued, bg_skipped, bg_prepared, bg_failed, bg_cancelled;
   uint64_t start_ns;
 } sm_metrics;
 

@@ -16,6 +16,8 @@ struct sm_pool {
   pthread_cond_t cv;
   sm_pool_job *head, *tail;
   int depth, cap, stop;
+  sm_pool_job *bhead, *btail; /* background queue (sm_srv_pool.h) */
+  int bdepth, bcap, bmax, brunning;
   pthread_t *th;
   int nth;
   pthread_mutex_t done_mu;
@@ -40,19 +42,36 @@ static void *worker(void *arg) {
   openblas_set_num_threads(1);
   for (;;) {
     pthread_mutex_lock(&p->mu);
-    while (!p->head && !p->stop) pthread_cond_wait(&p->cv, &p->mu);
-    if (!p->head) {
+    int bg = 0;
+    for (;;) {
+      if (p->head) break;
+      bg = p->bhead && (p->brunning < p->bmax || p->stop);
+      if (bg || p->stop) break;
+      pthread_cond_wait(&p->cv, &p->mu);
+    }
+    sm_pool_job *j = bg ? p->bhead : p->head;
+    if (!j) {
       pthread_mutex_unlock(&p->mu);
       return NULL;
     }
-    sm_pool_job *j = p->head;
-    p->head = j->qnext;
-    if (!p->head) p->tail = NULL;
-    p->depth--;
-    sm_met_sub(&sm_met.queue_depth, 1);
+    if (bg) {
+      if (!(p->bhead = j->qnext)) p->btail = NULL;
+      p->bdepth--;
+      p->brunning++;
+    } else {
+      if (!(p->head = j->qnext)) p->tail = NULL;
+      p->depth--;
+      sm_met_sub(&sm_met.queue_depth, 1);
+    }
     pthread_mutex_unlock(&p->mu);
     j->qnext = NULL;
     j->run(j);
+    if (bg) { /* a background slot is free: a waiting background job may start */
+      pthread_mutex_lock(&p->mu);
+      p->brunning--;
+      if (p->bhead) pthread_cond_broadcast(&p->cv);
+      pthread_mutex_unlock(&p->mu);
+    }
   }
 }
 
@@ -123,6 +142,28 @@ static int submit(sm_pool *p, sm_pool_job *j, int force) {
   pthread_cond_signal(&p->cv);
   pthread_mutex_unlock(&p->mu);
   return 0;
+}
+
+int sm_pool_submit_bg(sm_pool *p, sm_pool_job *j) {
+  pthread_mutex_lock(&p->mu);
+  int rc = p->stop ? SM_POOL_ESTOPPED : p->bmax < 1 || p->bdepth >= p->bcap ? SM_POOL_EFULL : 0;
+  if (!rc) {
+    j->qnext = NULL;
+    if (p->btail) p->btail->qnext = j;
+    else p->bhead = j;
+    p->btail = j;
+    p->bdepth++;
+    if (p->brunning < p->bmax) pthread_cond_signal(&p->cv);
+  }
+  pthread_mutex_unlock(&p->mu);
+  return rc;
+}
+
+void sm_pool_set_background(sm_pool *p, int bg_max, int bg_cap) {
+  pthread_mutex_lock(&p->mu);
+  p->bmax = bg_max < p->nth - 1 ? bg_max : p->nth - 1;
+  p->bcap = bg_cap;
+  pthread_mutex_unlock(&p->mu);
 }
 
 int sm_pool_submit(sm_pool *p, sm_pool_job *j) { return submit(p, j, 0); }

@@ -14,8 +14,14 @@
  *     OpenMP parallel regions off for the process (sm_eigs_openmp_off: CHOLMOD's
  *     factorization would open teams of 4 threads per worker): the pool is the only
  *     parallelism, so neither may oversubscribe the cores.
- *   - sm_pool_destroy stops the workers after the queue is empty (queued jobs still run:
- *     the caller cancels them first if it wants them short) and joins them.
+ *   - Background jobs (sm_pool_submit_bg) wait in a second queue of at most bg_cap jobs. A
+ *     worker takes one only when no request job waits and fewer than bg_max workers run
+ *     background jobs: with bg_max = threads - 1 one worker is always left for requests,
+ *     and a request never waits behind a background job in the queue. bg_max = 0 (the
+ *     default, and what sm_pool_set_background makes of one thread) turns them off.
+ *   - sm_pool_destroy stops the workers after both queues are empty (queued jobs still
+ *     run, background ones too, whatever bg_max: the caller cancels them first if it wants
+ *     them short) and joins them.
  *   Locks: mu (queue) and done_mu (completion list); never nested.
  */
 #ifndef SM_SRV_POOL_H
@@ -43,6 +49,12 @@ int sm_pool_submit(sm_pool *p, sm_pool_job *j);
  * was already admitted through sm_pool_submit and re-enters the queue a bounded number of
  * times at once (sm_srv_exec's fan-out), so admission control stays with the request. */
 int sm_pool_submit_force(sm_pool *p, sm_pool_job *j);
+/* Background jobs (see the contract): SM_POOL_EFULL when bg_cap wait already, or when
+ * they are off. */
+int sm_pool_submit_bg(sm_pool *p, sm_pool_job *j);
+/* Call before the first sm_pool_submit_bg: at most bg_max workers at once on background
+ * jobs (clamped to threads - 1), at most bg_cap waiting. */
+void sm_pool_set_background(sm_pool *p, int bg_max, int bg_cap);
 int sm_pool_threads(const sm_pool *p);
 /* On a worker thread: its index 0..threads-1; elsewhere -1. */
 int sm_pool_worker_index(void);

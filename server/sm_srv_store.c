@@ -25,7 +25,8 @@
 #define LOCK_SPACE ((uint64_t)1 << 40) /* bytes of store.lock that names hash onto */
 #define RECHECKS 4 /* a file that keeps changing under a lookup is taken as it is then */
 
-enum { V_COMPUTING = 1, V_READY = 2 };
+/* FAILED: a background preparation's error, kept for the next acquire of its key. */
+enum { V_COMPUTING = 1, V_READY = 2, V_FAILED = 3 };
 
 struct sm_prepared {
   sm_shape *shape;          /* full-resolution key */
@@ -40,6 +41,7 @@ typedef struct variant {
   sm_store_key key;
   int state;
   sm_prepared *p; /* READY: the cache's reference */
+  sm_error failure; /* FAILED */
   struct variant *next;               /* in e->vars */
   struct variant *lru_prev, *lru_next; /* READY only; head = most recent */
 } variant;
@@ -665,8 +667,9 @@ static int put_existing(sm_store *st, const uint8_t id[32], const char *hex,
 }
 
 int sm_store_put(sm_store *st, const uint8_t id[32], const uint8_t *draco, size_t len,
-                 uint32_t *nv, uint32_t *nf, int *existed, sm_error *err) {
+                 uint32_t *nv, uint32_t *nf, int *existed, sm_mesh **decoded, sm_error *err) {
   *existed = 0;
+  if (decoded) *decoded = NULL;
   uint8_t got[32];
   char hex[65];
   sm_sha256(draco, len, got);
@@ -698,14 +701,17 @@ int sm_store_put(sm_store *st, const uint8_t id[32], const uint8_t *draco, size_
   vf.nv = (uint32_t)m->nv;
   vf.nf = (uint32_t)m->nf;
   vf.bytes = len;
-  sm_mesh_destroy(m);
   sm_mesh_destroy(c);
+  if (rc || !decoded) sm_mesh_destroy(m);
   if (rc) return rc;
 
   int wrote;
   char path[PATHBUF];
   rc = write_shape_file(st, hex, draco, len, &wrote, err);
-  if (rc) return rc;
+  if (rc) {
+    if (decoded) sm_mesh_destroy(m);
+    return rc;
+  }
   uint32_t mnv, mnf;
   if (wrote || read_meta(st, hex, &mnv, &mnf)) write_meta(st, hex, vf.nv, vf.nf);
   shape_path(st, hex, path, sizeof path);
@@ -721,6 +727,8 @@ int sm_store_put(sm_store *st, const uint8_t id[32], const uint8_t *draco, size_
     *nf = e->nf;
   }
   pthread_mutex_unlock(&st->mu);
+  if (decoded && !rc) *decoded = m;
+  else if (decoded) sm_mesh_destroy(m);
   return rc;
 }
 
@@ -816,6 +824,10 @@ static void forget_locked(sm_store *st, entry *e, int files) {
   for (variant *v = e->vars, *n; v; v = n) {
     n = v->next;
     if (v->state == V_READY) var_evict_locked(st, v);
+    else if (v->state == V_FAILED) {
+      var_unlink(e, v);
+      free(v);
+    }
   }
   char hex[65], p[PATHBUF];
   memcpy(hex, e->hex, 65);
@@ -959,17 +971,22 @@ static int read_shape(sm_store *st, const char *hex, uint8_t **buf, size_t *len,
   return SM_OK;
 }
 
+/* raw_in: the shape's decoded bytes when the caller has them (PUT decoded them), else
+ * NULL: the file is read and decoded. */
 static int compute_variant(sm_store *st, const char *hex, const sm_store_key *key,
-                           int (*cancel)(void *), void *ud, sm_prepared **out,
-                           sm_store_prep_info *info, sm_error *err) {
-  uint8_t *buf = NULL;
-  size_t len = 0;
+                           const sm_mesh *raw_in, int (*cancel)(void *), void *ud,
+                           sm_prepared **out, sm_store_prep_info *info, sm_error *err) {
   uint64_t t0 = sm_srv_now_ns();
-  int rc = read_shape(st, hex, &buf, &len, err);
-  if (rc) return rc;
   sm_mesh *raw = NULL;
-  rc = sm_draco_decode(buf, len, &st->lim, &raw, err);
-  free(buf);
+  int rc = SM_OK;
+  if (!raw_in) {
+    uint8_t *buf = NULL;
+    size_t len = 0;
+    if ((rc = read_shape(st, hex, &buf, &len, err))) return rc;
+    rc = sm_draco_decode(buf, len, &st->lim, &raw, err);
+    free(buf);
+  }
+  const sm_mesh *input = raw_in ? raw_in : raw;
   uint64_t t_decode = us_since(t0);
   char level[64];
   level_tag(key, level, sizeof level);
@@ -993,11 +1010,11 @@ static int compute_variant(sm_store *st, const char *hex, const sm_store_key *ke
     mo.mode = SM_MULTIRES_ON;
     mo.coarse_nv = key->coarse_nv;
     mo.max_aspect = key->max_aspect;
-    rc = sm_prepare_multires(raw, &po, &mo, &mr, &pi, err);
+    rc = sm_prepare_multires(input, &po, &mo, &mr, &pi, err);
     if (!rc) /* the fine level's cleaning, decimation and location count as cleaning */
       pi.t_clean += mr->t_clean + mr->t_decimate + mr->t_locate;
   } else if (!rc) {
-    rc = sm_prepare(raw, &po, &s, &pi, err);
+    rc = sm_prepare(input, &po, &s, &pi, err);
   }
   sm_mesh_destroy(raw);
   info->t_clean_us = t_decode + (uint64_t)(pi.t_clean * 1e6);
@@ -1034,6 +1051,12 @@ static void abstime_in_ms(struct timespec *ts, int ms) {
 int sm_store_acquire(sm_store *st, const uint8_t id[32], const sm_store_key *key,
                      int (*cancel)(void *), void *ud, sm_prepared **out,
                      sm_store_prep_info *info, sm_error *err) {
+  return sm_store_acquire_ex(st, id, key, NULL, 0, cancel, ud, out, info, err);
+}
+
+int sm_store_acquire_ex(sm_store *st, const uint8_t id[32], const sm_store_key *key,
+                        const sm_mesh *raw, int background, int (*cancel)(void *), void *ud,
+                        sm_prepared **out, sm_store_prep_info *info, sm_error *err) {
   *out = NULL;
   memset(info, 0, sizeof *info);
   char hex0[65];
@@ -1072,6 +1095,18 @@ int sm_store_acquire(sm_store *st, const uint8_t id[32], const sm_store_key *key
       pthread_mutex_unlock(&st->mu);
       return SM_OK;
     }
+    if (v && v->state == V_FAILED) { /* reported once: the next request computes again */
+      int code = v->failure.code;
+      *err = v->failure;
+      size_t l = strlen(err->msg);
+      snprintf(err->msg + l, sizeof err->msg - l, " (background preparation after PUT)");
+      if (!background) {
+        var_unlink(e, v);
+        free(v);
+      }
+      pthread_mutex_unlock(&st->mu);
+      return code;
+    }
     if (v) { /* COMPUTING elsewhere: single-flight wait */
       if (!info->waited) st->s.singleflight_waits++;
       info->waited = 1;
@@ -1105,7 +1140,7 @@ int sm_store_acquire(sm_store *st, const uint8_t id[32], const sm_store_key *key
 
     sm_prepared *p = NULL;
     int w = info->waited;
-    int rc = compute_variant(st, hex, key, cancel, ud, &p, info, err);
+    int rc = compute_variant(st, hex, key, raw, cancel, ud, &p, info, err);
     info->waited = w;
 
     pthread_mutex_lock(&st->mu);
@@ -1121,6 +1156,12 @@ int sm_store_acquire(sm_store *st, const uint8_t id[32], const sm_store_key *key
       if (r != VF_OK || ++rechecks > RECHECKS) return not_stored(err, r == VF_OK ? VF_BAD : r);
       pthread_mutex_lock(&st->mu); /* replaced by good bytes meanwhile: again */
       continue;
+    } else if (rc && background && rc != SM_ECANCELED && !e->dropped) {
+      v->state = V_FAILED; /* kept for the request that needs it (sm_srv_store.h) */
+      v->failure = *err;
+      v->failure.code = rc;
+      v->next = e->vars;
+      e->vars = v;
     } else if (rc) {
       free(v);
     } else if (e->dropped) {
@@ -1148,6 +1189,15 @@ int sm_store_acquire(sm_store *st, const uint8_t id[32], const sm_store_key *key
     pthread_mutex_unlock(&st->mu);
     return rc;
   }
+}
+
+int sm_store_busy(sm_store *st, const uint8_t id[32], const sm_store_key *key) {
+  pthread_mutex_lock(&st->mu);
+  entry *e = find(st, id);
+  variant *v = e ? find_var(e, key) : NULL;
+  int busy = v && v->state == V_COMPUTING;
+  pthread_mutex_unlock(&st->mu);
+  return busy;
 }
 
 int sm_store_cached(sm_store *st, const uint8_t id[32], const sm_store_key *key) {

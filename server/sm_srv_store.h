@@ -36,7 +36,8 @@
  *     which computes it without the lock; later requesters wait on store->cv (timed waits
  *     so that their own cancel flag is honoured) and are counted in singleflight_waits.
  *     If the computation fails or is cancelled the variant is removed and one waiter
- *     retries.
+ *     retries; a background preparation's failure stays instead, for the next request
+ *     (sm_store_acquire_ex), and DROP removes it.
  *
  *   Several daemons may share one data directory (docs/DEPLOY.md): every file is written
  *     whole and renamed in, and a shape's file name is the SHA-256 of its bytes, so two
@@ -138,7 +139,10 @@ void sm_store_set_max_components(sm_store *st, uint32_t max_components);
  * deleted and the shape forgotten (counted shapes_corrupt), a file gone is forgotten
  * quietly; either way it is reported as not stored until PUT again. */
 int sm_store_put(sm_store *st, const uint8_t id[32], const uint8_t *draco, size_t len,
-                 uint32_t *nv, uint32_t *nf, int *existed, sm_error *err);
+                 uint32_t *nv, uint32_t *nf, int *existed, sm_mesh **decoded, sm_error *err);
+/* decoded (may be NULL): when the call decoded the bytes (a new shape) and succeeded, the
+ * decoded mesh (caller's, sm_mesh_destroy), for a preparation that need not decode them
+ * again (sm_store_acquire_ex); else NULL. */
 /* 1 stored, 0 not. *prepared: default variant cached in memory or on disk. */
 int sm_store_has(sm_store *st, const uint8_t id[32], uint32_t *nv, uint32_t *nf,
                  int *prepared);
@@ -150,6 +154,18 @@ int sm_store_drop(sm_store *st, const uint8_t id[32]);
 int sm_store_acquire(sm_store *st, const uint8_t id[32], const sm_store_key *key,
                      int (*cancel)(void *), void *ud, sm_prepared **out,
                      sm_store_prep_info *info, sm_error *err);
+/* Same, with two additions. raw (may be NULL): the shape's decoded bytes, used instead
+ * of reading and decoding the file if this call computes the variant. background: the
+ * caller is a background preparation (PUT's, sm_srv_exec.c) that nobody waits for; its
+ * failure, unless cancelled, is kept in place of the variant and returned once, with
+ * " (background preparation after PUT)" appended to the message, by the next acquire of
+ * the key (which computes nothing; the one after it computes again); a background acquire
+ * that finds such a failure returns it and leaves it. */
+int sm_store_acquire_ex(sm_store *st, const uint8_t id[32], const sm_store_key *key,
+                        const sm_mesh *raw, int background, int (*cancel)(void *), void *ud,
+                        sm_prepared **out, sm_store_prep_info *info, sm_error *err);
+/* 1 when (id, key) is being computed now (an acquire would wait for it), else 0. A hint. */
+int sm_store_busy(sm_store *st, const uint8_t id[32], const sm_store_key *key);
 /* 1 when (id, key) is prepared in the memory cache now (an acquire would not compute or
  * load anything), else 0. A hint: the answer may change right after. */
 int sm_store_cached(sm_store *st, const uint8_t id[32], const sm_store_key *key);

@@ -1133,8 +1133,9 @@ static void test_daemon(void) {
   if (pid == 0) {
     int fd = open(log, O_WRONLY | O_CREAT | O_TRUNC, 0600);
     if (fd >= 0) dup2(fd, 2);
+    /* PUT's background preparation off: the multires checks count every basis */
     execl(SM_SERVER_BIN, SM_SERVER_BIN, "--port", "0", "--data-dir", data, "--multires-coarse-nv",
-          "600", (char *)NULL);
+          "600", "--prepare-on-put", "0", (char *)NULL);
     _exit(127);
   }
   int port = 0, exited = 0;

@@ -62,9 +62,12 @@ static void on_alarm(int sig) {
   _exit(1);
 }
 
-/* The common flags of every daemon this test starts; extra (space-separated) adds to them. */
+/* The common flags of every daemon this test starts; extra (space-separated) adds to them
+ * (a flag given again overrides). PUT's background preparation is off except in
+ * test_put_prepares: the other runs count what each request computes. */
 static int start_daemon(const char *extra) {
-  return start_daemon_with("--threads 2 --default-k 30 --drain-ms 5000 --idle-timeout-ms 3000", extra);
+  return start_daemon_with("--threads 2 --default-k 30 --drain-ms 5000 --idle-timeout-ms 3000 "
+                           "--prepare-on-put 0", extra);
 }
 
 /* ------------------------------------------------------------------ wire */
@@ -477,6 +480,85 @@ static int shape_file_is(const shape *s) {
   int same = n == s->len && !memcmp(buf, s->drc, n);
   free(buf);
   return same;
+}
+
+/* Polls STATS until name reaches want (or about 200 s pass); returns the last value. */
+static uint64_t wait_stat(int fd, const char *name, uint64_t want) {
+  uint64_t v = 0;
+  for (int i = 0; i < 2000 && (v = stat_of(fd, name)) < want; i++) sleep_us(100000);
+  return v;
+}
+
+/* PUT's background preparation (--prepare-on-put 1, PROTOCOL.md 5.4), on a fresh data dir:
+ * (a) two PUTs without PREPARE, then, once both background preparations are done, a
+ *     MATCH that computes and loads nothing (no cache miss) and equals the local map;
+ * (b) a bad upload is still refused by the PUT itself with its error, nothing queued;
+ * (c) a SIGTERM while a background preparation runs (default k 100 on the same shapes:
+ *     seconds of work) ends the daemon cleanly (exit 0, the shutdown completed), well
+ *     before that preparation could have ended. */
+static void test_put_prepares(const shape *x, const shape *y, const int32_t *ref_map) {
+  char data[700];
+  snprintf(data, sizeof data, "%s/data", g_dir);
+  rm_rf(data);
+  int port = start_daemon("--prepare-on-put 1");
+  REQUIRE(port > 0);
+  int fd = connect_to(port);
+  hello(fd, NULL);
+  sm_proto_put_resp pr;
+  CHECK(put(fd, x->id, x->drc, x->len, &pr) == SM_ST_OK);
+  CHECK(put(fd, y->id, y->drc, y->len, &pr) == SM_ST_OK);
+  CHECK(stat_of(fd, "put_prepares_queued") == 2);
+  CHECK(wait_stat(fd, "put_prepares_done", 2) == 2);
+  CHECK(has(fd, x->id) & SM_HAS_PREPARED);
+  CHECK(has(fd, y->id) & SM_HAS_PREPARED);
+  uint64_t comp = stat_of(fd, "bases_computed"), miss = stat_of(fd, "cache_misses");
+  uint64_t loaded = stat_of(fd, "bases_loaded");
+  CHECK(comp == 4); /* LB and elastic of each, computed once, by the background jobs */
+  int32_t *map = NULL;
+  uint32_t nx = 0;
+  sm_proto_dist dist;
+  uint64_t t_prep = 1;
+  CHECK(do_match(fd, 1, x, y, &map, &nx, &dist, &t_prep, NULL) == SM_ST_OK);
+  CHECK(t_prep == 0); /* nothing prepared by the MATCH */
+  CHECK(stat_of(fd, "bases_computed") == comp && stat_of(fd, "bases_loaded") == loaded);
+  CHECK(stat_of(fd, "cache_misses") == miss);
+  if (map && nx == (uint32_t)x->mesh->nv) CHECK(maps_equal(map, ref_map, nx));
+  free(map);
+
+  /* (b) a corrupt upload: refused by the PUT, as with the background jobs off */
+  uint8_t junk[512], jid[32];
+  for (size_t i = 0; i < sizeof junk; i++) junk[i] = (uint8_t)(i * 53 + 7);
+  memcpy(junk, "DRACO", 5);
+  sm_sha256(junk, sizeof junk, jid);
+  CHECK(put(fd, jid, junk, sizeof junk, NULL) == SM_ST_DECODE_FAILED);
+  CHECK(stat_of(fd, "put_prepares_queued") == 2);
+  CHECK(!(has(fd, jid) & SM_HAS_STORED));
+  close(fd);
+  CHECK(stop_daemon() == 0);
+
+  /* (c) shutdown during a background preparation */
+  rm_rf(data);
+  port = start_daemon("--prepare-on-put 1 --default-k 100");
+  REQUIRE(port > 0);
+  fd = connect_to(port);
+  hello(fd, NULL);
+  CHECK(put(fd, x->id, x->drc, x->len, &pr) == SM_ST_OK);
+  CHECK(put(fd, y->id, y->drc, y->len, &pr) == SM_ST_OK);
+  CHECK(wait_stat(fd, "prepares", 1) >= 1); /* a background preparation has started */
+  CHECK(stat_of(fd, "put_prepares_done") == 0);
+  close(fd);
+  CHECK(stop_daemon() == 0);
+  FILE *lf = fopen(g_log, "r");
+  char line[1024];
+  int complete = 0, stuck = 0, done = 0;
+  while (lf && fgets(line, sizeof line, lf)) {
+    complete |= strstr(line, "shutdown complete") != NULL;
+    stuck |= strstr(line, "did not stop") != NULL;
+    done |= strstr(line, "background preparation done") != NULL;
+  }
+  if (lf) fclose(lf);
+  CHECK(complete && !stuck);
+  CHECK_MSG(!done, "%s", "a background preparation ran to its end after SIGTERM");
 }
 
 /* Runs 4-6: what PUT refuses, the preparation bound, QUERY with a candidate that cannot
@@ -1023,6 +1105,7 @@ int main(void) {
   CHECK(stop_daemon() == 0);
 
   test_bad_shapes(&x, &y);
+  test_put_prepares(&x, &y, ref_map);
 
   /* The daemon logged logfmt lines. */
   FILE *lf = fopen(g_log, "r");
