@@ -17,6 +17,8 @@
 
 #include "sm_basis.h"
 #include "sm_meshio.h"
+
+int sm_fuzz_draco_variant(const sm_mesh *m, int variant, uint8_t **buf, size_t *len);
 #include "sm_proto.h"
 #include "sm_synth.h"
 
@@ -238,6 +240,34 @@ static int binary_mesh_seeds(const sm_mesh *m) {
   return rc | write_seed("meshio", "binary.ply", &fmt, 1, buf, off);
 }
 
+/* The other Draco coders (fuzz_seeds_draco.cpp), each variant of `m` one seed. */
+static int draco_variant_seeds(const char *stem, const sm_mesh *m) {
+  int rc = 0;
+  for (int v = 0;; v++) {
+    uint8_t *drc = NULL;
+    size_t len = 0;
+    int e = sm_fuzz_draco_variant(m, v, &drc, &len);
+    if (e == 1) break;
+    if (e) return -1;
+    char name[48];
+    snprintf(name, sizeof name, "%s_variant%d.drc", stem, v);
+    rc |= write_seed("draco_mesh", name, NULL, 0, drc, len);
+    free(drc);
+  }
+  return rc;
+}
+
+/* m and a shifted copy of it: two components, as scans and the dragon file have. */
+static sm_mesh *two_components(const sm_mesh *m) {
+  sm_mesh *t = NULL;
+  if (sm_mesh_alloc(2 * (int64_t)m->nv, 2 * m->nf, NULL, &t, NULL)) return NULL;
+  for (int32_t v = 0; v < 2 * m->nv; v++)
+    for (int d = 0; d < 3; d++) t->V[3 * v + d] = m->V[3 * (v % m->nv) + d] + (v >= m->nv && d == 0 ? 3 : 0);
+  for (int64_t f = 0; f < 2 * m->nf; f++)
+    for (int c = 0; c < 3; c++) t->F[3 * f + c] = m->F[3 * (f % m->nf) + c] + (f >= m->nf ? m->nv : 0);
+  return t;
+}
+
 static int mesh_seeds(void) {
   sm_mesh *m = NULL;
   if (sm_synth_icosphere(1, &m, NULL)) return -1;
@@ -255,6 +285,11 @@ static int mesh_seeds(void) {
     else rc |= write_seed("draco_mesh", name, NULL, 0, drc, len);
     free(drc);
   }
+  rc |= draco_variant_seeds("icosphere", m);
+  sm_mesh *two = two_components(m);
+  if (two) rc |= draco_variant_seeds("two", two);
+  else rc = -1;
+  sm_mesh_destroy(two);
   sm_mesh_destroy(m);
   return rc;
 }
