@@ -168,6 +168,22 @@ static void test_hostile(void) {
   CHECK(strstr(e.msg, "2000000000") != NULL);
   free(big);
 
+  /* Found by fuzz_draco_mesh (tests/fuzz/regress/draco_mesh/bitstream-1.1-...): an
+   * edgebreaker header of bitstream 1.1 with the metadata flag set. Draco reads metadata
+   * from 1.3 on only, so it took the next bytes as 1,296,911,693 faces and reserved 5 GB
+   * for them, while the header check, which read them as metadata, gave up and let Draco
+   * decode. The check must read the counts as Draco does, and refuse what it cannot read. */
+  uint8_t v11[12 + 4 + 4 + 4 + 16];
+  static const uint8_t v11_head[12] = {'D', 'R', 'A', 'C', 'O', 1, 1, 1, 1, 0x0c, 0x9e, 0};
+  memcpy(v11, v11_head, sizeof v11_head);
+  memset(v11 + 12, 0x4d, sizeof v11 - 12); /* new vertices, vertices, faces, ... */
+  CHECK(sm_draco_decode(v11, sizeof v11, NULL, &m, &e) == SM_ELIMIT && m == NULL);
+  CHECK(strstr(e.msg, "1296911693") != NULL);
+  /* A mesh header that stops after its flags: no counts to check, refused as such. */
+  static const uint8_t no_counts[11] = {'D', 'R', 'A', 'C', 'O', 2, 2, 1, 0, 0, 0};
+  CHECK(sm_draco_decode(no_counts, sizeof no_counts, NULL, &m, &e) == SM_EFORMAT && m == NULL);
+  CHECK(strstr(e.msg, "counts") != NULL);
+
   /* Through sm_mesh_read_file with the .drc extension. */
   char path[1024];
   snprintf(path, sizeof path, "%s/draco_icosphere.drc", SM_TEST_TMP);

@@ -43,8 +43,8 @@ bool read_count(draco::DecoderBuffer *b, bool varint, uint32_t *out) {
 /* The vertex and face counts a mesh bitstream announces, read without decoding it (the
  * layout of Draco's sequential and edgebreaker connectivity headers), so that an
  * over-limit mesh is refused before Draco allocates anything for it. Edgebreaker's count
- * is of encoded vertices, which attribute seams can only increase. false = not
- * readable here; the full decode then decides. */
+ * is of encoded vertices, which attribute seams can only increase. false = not readable:
+ * the caller refuses the file, since Draco would size its tables from those counts. */
 bool peek_counts(const uint8_t *buf, size_t len, int64_t *nv, int64_t *nf) {
   draco::DecoderBuffer b;
   b.Init(reinterpret_cast<const char *>(buf), len);
@@ -53,7 +53,9 @@ bool peek_counts(const uint8_t *buf, size_t len, int64_t *nv, int64_t *nf) {
   if (h.encoder_type != draco::TRIANGULAR_MESH) return false;
   uint16_t version = DRACO_BITSTREAM_VERSION(h.version_major, h.version_minor);
   b.set_bitstream_version(version);
-  if (h.flags & METADATA_FLAG_MASK) {
+  /* Draco reads metadata from bitstream 1.3 on only; before, the flag is ignored (found by
+   * fuzz_draco_mesh: a 1.1 file with the flag made this peek fail and Draco reserve 5 GB). */
+  if (version >= DRACO_BITSTREAM_VERSION(1, 3) && (h.flags & METADATA_FLAG_MASK)) {
     draco::MetadataDecoder md;
     draco::GeometryMetadata gm;
     if (!md.DecodeGeometryMetadata(&b, &gm)) return false;
@@ -91,10 +93,12 @@ int decode_impl(const uint8_t *buf, size_t len, const sm_limits *lim, sm_mesh **
   if (type.value() != draco::TRIANGULAR_MESH)
     return sm_error_set(err, SM_EFORMAT, "draco: unknown geometry type %d", (int)type.value());
   int64_t announced_v, announced_f;
-  if (peek_counts(buf, len, &announced_v, &announced_f)) {
-    int rc = sm_limits_check(lim, announced_v, announced_f, err);
-    if (rc) return rc;
-  }
+  if (!peek_counts(buf, len, &announced_v, &announced_f))
+    return sm_error_set(err, SM_EFORMAT,
+                        "draco: cannot read the vertex and face counts from the mesh header "
+                        "(%zu bytes)", len);
+  int rc = sm_limits_check(lim, announced_v, announced_f, err);
+  if (rc) return rc;
 
   db.Init(reinterpret_cast<const char *>(buf), len);
   draco::Decoder dec;
@@ -119,7 +123,7 @@ int decode_impl(const uint8_t *buf, size_t len, const sm_limits *lim, sm_mesh **
                         (int)pos->data_type());
 
   int64_t nv = dm->num_points(), nf = dm->num_faces();
-  int rc = sm_limits_check(lim, nv, nf, err);
+  rc = sm_limits_check(lim, nv, nf, err);
   if (rc) return rc;
   sm_mesh *m;
   if ((rc = sm_mesh_alloc(nv, nf, lim, &m, err))) return rc;
