@@ -27,7 +27,9 @@
  *   buffered_peak, shed_overloaded, shed_idle, read_pauses, connections_rejected.
  *   Percentiles are nearest rank over the good client's wall-clock latencies.
  *
- * Usage: bench_hostile [--hostile N] [--secs S] [--budget-mb B] [--keep]
+ * Usage: bench_hostile [--hostile N] [--secs S] [--budget-mb B] [--daemon PATH] [--keep]
+ *   --daemon: another shapematchd binary (default: this build's), to compare two builds
+ *   under the same load; bench/hostile_runs.sh repeats runs and prints medians.
  */
 #define _GNU_SOURCE
 #include <arpa/inet.h>
@@ -91,6 +93,7 @@ static int rm_entry(const char *path, const struct stat *sb, int flag, struct FT
 
 static pid_t g_pid;
 static int g_port;
+static const char *g_daemon_bin = SM_SERVER_BIN;
 static char g_dir[256];
 
 static int daemon_start(int budget_mb) {
@@ -106,7 +109,7 @@ static int daemon_start(int budget_mb) {
   if (pid == 0) {
     if (!freopen(log, "w", stderr)) _exit(126);
     dup2(fileno(stderr), 1);
-    execl(SM_SERVER_BIN, "shapematchd", "--port", "0", "--data-dir", data, "--threads", "2",
+    execl(g_daemon_bin, "shapematchd", "--port", "0", "--data-dir", data, "--threads", "2",
           "--max-conns", "1024", "--buffer-budget-mb", bud, "--default-k", "30", (char *)NULL);
     _exit(127);
   }
@@ -146,6 +149,23 @@ static double proc_mib(const char *key) {
     if (!strncmp(line, key, strlen(key))) v = atof(line + strlen(key) + 1) / 1024.0;
   if (f) fclose(f);
   return v;
+}
+
+/* CPU seconds (user + system) of the daemon's process, or of its loop thread (the main
+ * thread: its tid is the pid), from /proc. */
+static double cpu_s(int loop_only) {
+  char path[96], buf[1024];
+  if (loop_only) snprintf(path, sizeof path, "/proc/%d/task/%d/stat", (int)g_pid, (int)g_pid);
+  else snprintf(path, sizeof path, "/proc/%d/stat", (int)g_pid);
+  FILE *f = fopen(path, "r");
+  size_t n = f ? fread(buf, 1, sizeof buf - 1, f) : 0;
+  if (f) fclose(f);
+  buf[n] = 0;
+  const char *p = strrchr(buf, ')'); /* fields after the command name; utime, stime = 14, 15 */
+  unsigned long long ut = 0, st = 0;
+  if (!p || sscanf(p + 2, "%*c %*d %*d %*d %*d %*d %*u %*u %*u %*u %*u %llu %llu", &ut, &st) != 2)
+    return NAN;
+  return (double)(ut + st) / (double)sysconf(_SC_CLK_TCK);
 }
 
 static void reset_hwm(void) {
@@ -439,9 +459,11 @@ int main(int argc, char **argv) {
     if (!strcmp(argv[i], "--hostile") && i + 1 < argc) n_hostile = atoi(argv[++i]);
     else if (!strcmp(argv[i], "--secs") && i + 1 < argc) secs = atof(argv[++i]);
     else if (!strcmp(argv[i], "--budget-mb") && i + 1 < argc) budget_mb = atoi(argv[++i]);
+    else if (!strcmp(argv[i], "--daemon") && i + 1 < argc) g_daemon_bin = argv[++i];
     else if (!strcmp(argv[i], "--keep")) keep = 1;
     else {
-      fprintf(stderr, "usage: bench_hostile [--hostile N] [--secs S] [--budget-mb B] [--keep]\n");
+      fprintf(stderr, "usage: bench_hostile [--hostile N] [--secs S] [--budget-mb B] "
+                      "[--daemon PATH] [--keep]\n");
       return 2;
     }
   }
@@ -490,14 +512,16 @@ int main(int argc, char **argv) {
       g_pipe_len += ping_frame(g_pipe_buf + g_pipe_len, 64, i + 1);
     }
   }
-  printf("bench_hostile: daemon pid %d, --buffer-budget-mb %d, %d hostile connections + %d "
-         "flood, %.0f s per phase\n\n", (int)g_pid, budget_mb, n_hostile, FLOOD, secs);
+  printf("bench_hostile: daemon %s pid %d, --buffer-budget-mb %d, %d hostile connections + %d "
+         "flood, %.0f s per phase\n\n", g_daemon_bin, (int)g_pid, budget_mb, n_hostile, FLOOD, secs);
   printf("| phase | PINGs | PING p50 ms | PING p99 ms | DISTANCEs | DIST p50 ms | DIST p99 ms "
          "| errors | new clients admitted | peak RSS MiB (VmHWM) |\n|---|---|---|---|---|---|---|---|---|---|\n");
   double rss0 = proc_mib("VmRSS:");
   phase un, lo;
   reset_hwm();
+  double cpu0 = cpu_s(0), loop0 = cpu_s(1);
   run_phase(c, (const uint8_t(*)[32])ids, secs, &un);
+  double cpu1 = cpu_s(0), loop1 = cpu_s(1);
   un.hwm_mib = proc_mib("VmHWM:");
   report("unloaded", &un);
 
@@ -510,7 +534,9 @@ int main(int argc, char **argv) {
   pthread_t th;
   pthread_create(&th, NULL, drive, &dr);
   sleep_ms(2000); /* every hostile connection opened and at work */
+  double cpu2 = cpu_s(0), loop2 = cpu_s(1);
   run_phase(c, (const uint8_t(*)[32])ids, secs, &lo);
+  double cpu3 = cpu_s(0), loop3 = cpu_s(1);
   lo.hwm_mib = proc_mib("VmHWM:");
   double rss_loaded = proc_mib("VmRSS:");
   uint64_t conns = stat_get(c, "connections");
@@ -518,7 +544,10 @@ int main(int argc, char **argv) {
   pthread_join(th, NULL);
   report("loaded", &lo);
   sleep_ms(3000); /* the daemon sees the closes; malloc_trim after the burst */
-  printf("\nDaemon RSS: %.0f MiB before, %.0f MiB at the end of the loaded phase, %.0f MiB 3 s "
+  printf("\nDaemon CPU: unloaded phase %.2f s (loop thread %.2f s), loaded phase %.2f s (loop "
+         "thread %.2f s; the 2 s of hostile start-up before it: loop %.2f s)\n",
+         cpu1 - cpu0, loop1 - loop0, cpu3 - cpu2, loop3 - loop2, loop2 - loop1);
+  printf("Daemon RSS: %.0f MiB before, %.0f MiB at the end of the loaded phase, %.0f MiB 3 s "
          "after the hostile connections closed.\n", rss0, rss_loaded, proc_mib("VmRSS:"));
   printf("STATS: connections during load %llu, buffered_peak %llu bytes (budget %llu), "
          "shed_overloaded %llu, shed_idle %llu, read_pauses %llu, budget_blocks %llu, "

@@ -89,6 +89,7 @@ typedef struct sm_server {
    * last malloc_trim, and connections whose reading waits for the budget. */
   uint64_t buf_used, buf_trim_mark;
   int n_budget_blocked;
+  int n_backlogged;         /* connections with frames left for their next turn */
   /* Set once the loop has ended: background preparations still queued return at once and
    * running ones are cancelled (their cancel callback reads it on a worker). */
   _Atomic int bg_stop;

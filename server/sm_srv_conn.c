@@ -177,8 +177,15 @@ static void conn_free(sm_server *s, sm_conn *c) {
   wq_free(s, c);
   rbuf_free(s, c);
   if (c->budget_blocked) s->n_budget_blocked--;
+  if (c->backlogged) s->n_backlogged--;
   free(c->inflight);
   free(c);
+}
+
+static void set_backlogged(sm_server *s, sm_conn *c, int v) {
+  if (c->backlogged == v) return;
+  c->backlogged = v;
+  s->n_backlogged += v ? 1 : -1;
 }
 
 static void leave_active(sm_server *s, sm_conn *c) {
@@ -204,6 +211,7 @@ void sm_conn_close(sm_server *s, sm_conn *c) {
     c->fd = -1;
   }
   c->state = SM_CONN_DEAD;
+  set_backlogged(s, c, 0);
   wq_free(s, c);
   rbuf_free(s, c);
   sm_conn_cancel_all(c, 1); /* closing a connection cancels its requests */
@@ -225,7 +233,7 @@ void sm_conn_update_events(sm_server *s, sm_conn *c) {
   int paused = c->state == SM_CONN_OPEN && c->wq_bytes >= wq_cap(s);
   if (paused && !c->read_paused) sm_met_add(&sm_met.read_pauses, 1);
   c->read_paused = paused;
-  if (c->state == SM_CONN_OPEN && !paused && !c->budget_blocked) m |= EPOLLIN;
+  if (c->state == SM_CONN_OPEN && !paused && !c->budget_blocked && !c->backlogged) m |= EPOLLIN;
   if (c->state == SM_CONN_LINGER) m |= EPOLLIN;
   if (c->wq_head) m |= EPOLLOUT;
   if (m != c->ev_mask) {
@@ -282,23 +290,37 @@ static void process(sm_server *s, sm_conn *c);
 
 /* ------------------------------------------------------------------ write side */
 
-void sm_conn_on_writable(sm_server *s, sm_conn *c) {
-  if (c->fd < 0) return;
-  while (c->wq_head && c->fd >= 0) {
+/* Sends queued frames until the socket is full; -1 when the peer is gone. */
+static int send_queued(sm_server *s, sm_conn *c) {
+  while (c->wq_head) {
     sm_wbuf *w = c->wq_head;
     ssize_t n = send(c->fd, w->data + w->off, w->len - w->off, MSG_NOSIGNAL);
     if (n < 0) {
       if (errno == EINTR) continue;
       if (errno == EAGAIN || errno == EWOULDBLOCK) break;
-      sm_conn_close(s, c); /* peer gone */
-      return;
+      return -1;
     }
     sm_met_add(&sm_met.bytes_out, (uint64_t)n);
     w->off += (size_t)n;
     c->wq_bytes -= (size_t)n;
     if (w->off == w->len) wq_pop(s, c);
   }
+  return 0;
+}
+
+/* Answers leave in the turn that made them rather than at the next writable event, one
+ * loop iteration later (which, under load, is when a PING or a finished DISTANCE waited).
+ * Called where closing the connection is not safe: a failure is left to that event. */
+static void flush_now(sm_server *s, sm_conn *c) {
+  if (c->fd >= 0 && c->state == SM_CONN_OPEN && c->wq_head) (void)send_queued(s, c);
+}
+
+void sm_conn_on_writable(sm_server *s, sm_conn *c) {
   if (c->fd < 0) return;
+  if (send_queued(s, c)) {
+    sm_conn_close(s, c); /* peer gone */
+    return;
+  }
   if (c->kind == SM_H_CONN && c->state == SM_CONN_OPEN && c->rlen && c->wq_bytes < wq_cap(s)) {
     process(s, c); /* frames held back by rule 1 */
     if (c->state != SM_CONN_OPEN || c->fd < 0) return;
@@ -574,11 +596,18 @@ static uint32_t le32(const uint8_t *p) {
   return (uint32_t)p[0] | (uint32_t)p[1] << 8 | (uint32_t)p[2] << 16 | (uint32_t)p[3] << 24;
 }
 
-/* Handles every complete frame at the start of rbuf, until rule 1 pauses the connection. */
+/* Handles the complete frames at the start of rbuf, until rule 1 pauses the connection or
+ * its turn's slice is used (it is then backlogged: sm_conn_run_backlog continues). */
 static void process(sm_server *s, sm_conn *c) {
   size_t off = 0;
+  int frames = 0;
+  set_backlogged(s, c, 0);
   while (c->state == SM_CONN_OPEN && c->rbuf && off < c->rlen) {
     if (c->wq_bytes >= wq_cap(s)) break; /* rule 1: resumed by sm_conn_on_writable */
+    if (frames == SM_CONN_FRAME_SLICE) {
+      set_backlogged(s, c, 1); /* possibly only a partial frame left: the next turn sees */
+      break;
+    }
     const uint8_t *p = c->rbuf + off;
     size_t avail = c->rlen - off;
     sm_proto_header h;
@@ -618,12 +647,14 @@ static void process(sm_server *s, sm_conn *c) {
       return;
     }
     off += total;
+    frames++;
   }
   if (off && c->rbuf) {
     memmove(c->rbuf, c->rbuf + off, c->rlen - off);
     c->rlen -= off;
     c->frame_start_ns = sm_srv_now_ns(); /* a partial frame's clock starts now */
   }
+  flush_now(s, c);
   /* Give memory back as soon as a large buffer is no longer needed. */
   if (c->rlen == 0 && c->rcap > RBUF_MIN) rbuf_free(s, c);
   else if (c->rcap > 4 * RBUF_MIN && c->rlen < c->rcap / 4 && c->rneed < c->rcap / 4)
@@ -670,7 +701,8 @@ void sm_conn_on_readable(sm_server *s, sm_conn *c) {
    * peer that uploads at loopback speed cannot hold the loop while others wait. */
   size_t got = 0;
   for (int rounds = 0; rounds < 16 && got < READ_SLICE && c->state == SM_CONN_OPEN; rounds++) {
-    if (c->budget_blocked || (c->kind == SM_H_CONN && c->wq_bytes >= wq_cap(s))) break;
+    if (c->budget_blocked || c->backlogged || (c->kind == SM_H_CONN && c->wq_bytes >= wq_cap(s)))
+      break;
     if (!c->rbuf || c->rlen == c->rcap) {
       if (rbuf_resize(s, c, rbuf_next_cap(c))) {
         if (errno == ENOMEM) {
@@ -702,6 +734,19 @@ void sm_conn_on_readable(sm_server *s, sm_conn *c) {
   if (c->fd >= 0) sm_conn_update_events(s, c);
 }
 
+void sm_conn_run_backlog(sm_server *s) {
+  if (!s->n_backlogged) return;
+  for (sm_conn *c = s->conns; c; c = c->next) {
+    if (!c->backlogged) continue;
+    if (c->state != SM_CONN_OPEN || c->fd < 0) {
+      set_backlogged(s, c, 0);
+      continue;
+    }
+    process(s, c); /* rule 1 may hold it instead: sm_conn_on_writable resumes it then */
+    if (c->fd >= 0) sm_conn_update_events(s, c);
+  }
+}
+
 void sm_conn_on_done(sm_server *s, sm_srv_out *o) {
   sm_job *j = o->job;
   sm_conn *c = j->conn;
@@ -709,6 +754,8 @@ void sm_conn_on_done(sm_server *s, sm_srv_out *o) {
   if (c->state == SM_CONN_OPEN) {
     c->last_active_ns = sm_srv_now_ns();
     queue_frame(s, c, w);
+    flush_now(s, c);
+    sm_conn_update_events(s, c);
   } else {
     free(w);
   }

@@ -27,6 +27,18 @@
  *          reading is blocked on it, the connection holding the most bytes is closed with
  *          GOAWAY OVERLOADED (detail: the KiB it held), its unsent answers dropped.
  *     Buffers are freed as soon as they drain; the loop calls malloc_trim after a burst.
+ *     The kernel's send buffer of a connection is fixed at SM_CONN_SNDBUF (256 KiB as the
+ *     kernel counts it) instead of growing to tcp_wmem's 4 MiB: rule 1 sees only what the
+ *     kernel did not take, so a peer that never reads otherwise made the loop compute
+ *     4 MiB more answers (and the kernel hold them) before its reading paused. 256 KiB
+ *     covers a 10 Gb/s LAN's bandwidth-delay product; a far peer's large answers flow
+ *     more slowly.
+ *   - Fairness between connections: one event handles at most SM_CONN_FRAME_SLICE frames
+ *     of a connection. Complete frames left in its buffer make it "backlogged": it is not
+ *     read meanwhile, and sm_conn_run_backlog (loop, after each event batch, which then
+ *     polls without waiting) gives it its next slice. So a peer pipelining thousands of
+ *     requests gets its answers in turns with everyone else instead of holding the loop
+ *     for all of them while another client's PING or finished DISTANCE waits.
  *   - Connection limit: at max_conns a new connection evicts the oldest idle one
  *     (sm_conn_evict_idle: no HELLO after SM_CONN_HELLO_GRACE_MS, or nothing pending for
  *     SM_CONN_IDLE_EVICT_MS) before it is refused; a HELLO not completed within
@@ -47,6 +59,8 @@
 
 #define SM_CONN_WQ_HIGH (256u << 10)  /* unsent answers that pause reading */
 #define SM_CONN_WQ_TIGHT (16u << 10)  /* the same once half the budget is used */
+#define SM_CONN_FRAME_SLICE 32        /* frames of one connection handled per turn */
+#define SM_CONN_SNDBUF (128 << 10)     /* SO_SNDBUF of a connection (the kernel doubles it) */
 #define SM_CONN_HELLO_GRACE_MS 1000u
 #define SM_CONN_IDLE_EVICT_MS 10000u
 #define SM_CONN_HELLO_TIMEOUT_MS 10000u
@@ -70,6 +84,7 @@ typedef struct sm_conn {
   size_t job_bytes;      /* charged to the budget: bodies held by this connection's jobs */
   int read_paused;       /* rule 1: answers unread */
   int budget_blocked;    /* rule 2: the read buffer could not grow */
+  int backlogged;        /* complete frames wait for the next turn (fairness) */
   int hello_done;
   uint8_t version;       /* of every frame: SM_PROTO_VERSION_HELLO, then the negotiated one */
   uint32_t limit;        /* current max payload */
@@ -109,6 +124,9 @@ void sm_conn_goaway(sm_server *s, sm_conn *c);
  * point to freed memory) frees it. */
 void sm_conn_close(sm_server *s, sm_conn *c);
 void sm_conn_sweep(sm_server *s);
+/* Fairness: one more slice of frames for every backlogged connection. Loop thread, after
+ * each event batch; while s->n_backlogged > 0 the loop polls without waiting. */
+void sm_conn_run_backlog(sm_server *s);
 void sm_conn_update_events(sm_server *s, sm_conn *c);
 /* Sets every in-flight job's cancel flag to v. */
 void sm_conn_cancel_all(sm_conn *c, int v);

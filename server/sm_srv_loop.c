@@ -90,8 +90,9 @@ static void on_accept(sm_server *s, int lfd, int kind) {
     inet_ntop(AF_INET, &a.sin_addr, ip, sizeof ip);
     snprintf(peer, sizeof peer, "%s:%d", ip, ntohs(a.sin_port));
     if (kind == SM_H_CONN) {
-      int one = 1;
+      int one = 1, sndbuf = SM_CONN_SNDBUF;
       setsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
+      setsockopt(fd, SOL_SOCKET, SO_SNDBUF, &sndbuf, sizeof sndbuf); /* sm_srv_conn.h */
     }
     int over = kind == SM_H_CONN && s->n_active >= s->cfg.max_conns &&
                !sm_conn_evict_idle(s, sm_srv_now_ns());
@@ -171,7 +172,8 @@ int sm_srv_run(sm_server *s, int lfd, int mfd) {
   if (spare_fd < 0) spare_fd = open("/dev/null", O_RDONLY | O_CLOEXEC);
   for (;;) {
     struct epoll_event evs[128];
-    int n = epoll_wait(s->epfd, evs, 128, TICK_MS);
+    /* Backlogged connections (fairness, sm_srv_conn.h) have work: poll, do not sleep. */
+    int n = epoll_wait(s->epfd, evs, 128, s->n_backlogged ? 0 : TICK_MS);
     if (n < 0 && errno != EINTR) {
       sm_log("error", "epoll_wait failed", " err=\"%s\"", strerror(errno));
       return -1;
@@ -207,6 +209,7 @@ int sm_srv_run(sm_server *s, int lfd, int mfd) {
         else if (e & (EPOLLIN | EPOLLERR | EPOLLHUP)) sm_conn_on_readable(s, c);
       }
     }
+    sm_conn_run_backlog(s);
     sm_conn_budget(s);
     sm_conn_sweep(s);
     uint64_t now = sm_srv_now_ns();

@@ -230,6 +230,7 @@ static void run_jobs(sm_server *s, int max) {
 static void after_event(sm_server *s, sm_conn *c, peer *p) {
   if (c && p->sent && (c->ev_mask & EPOLLIN)) sm_conn_on_readable(s, c);
   p->sent = 0;
+  sm_conn_run_backlog(s);
   sm_conn_budget(s);
   sm_conn_sweep(s);
 }
@@ -339,6 +340,7 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size) {
     if (s.conns && s.conns->fd >= 0) sm_conn_on_readable(&s, s.conns);
     if (round > 8 && s.conns && s.conns->state == SM_CONN_LINGER)
       sm_conn_tick(&s, sm_srv_now_ns() + clock + 3000000000ull); /* linger ends */
+    sm_conn_run_backlog(&s);
     sm_conn_budget(&s);
     sm_conn_sweep(&s);
   }
