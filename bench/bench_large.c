@@ -25,9 +25,17 @@
  *   vertices to it. In the cases above, `(dec)` is the decimation's share of `prep` (canonical
  *   copy, decimation, proxy repair; both shapes).
  *
+ *   --diag: under each case a line with the coarse sm_match's confidence, Dirichlet energy,
+ *   tip hypotheses tried / kept, and the error of the coarse map alone carried to the fine
+ *   vertices (fine vertex -> its coarse vertex -> the coarse image -> the fine vertex leaning
+ *   most on it): when that is as bad as the final map, the coarse match failed, not the
+ *   transfer. --tips, --multi-start (match options), --max-aspect, --coarse-tips,
+ *   --fine-iters (multires options) vary one setting for A/B runs.
+ *
  * usage: bench_large [--reps N] [--direct] [--small] [--small-levels N,N,..] [--pair NAME]
  *                    [--no-small-direct] [--only koala|dragon|small] [--coarse N]
- *                    [--decimate]
+ *                    [--decimate] [--diag] [--tips 0|1|2] [--multi-start 0|1]
+ *                    [--max-aspect B] [--coarse-tips 0|1] [--fine-iters N]
  */
 #define _GNU_SOURCE
 #include <stdint.h>
@@ -535,7 +543,8 @@ int main(int argc, char **argv) {
     else {
       fprintf(stderr, "usage: bench_large [--reps N] [--direct] [--small] [--small-levels N,N,..] "
                       "[--pair NAME] [--no-small-direct] [--only koala|dragon|small] "
-                      "[--coarse N] [--decimate]\n");
+                      "[--coarse N] [--decimate] [--diag] [--tips 0|1|2] [--multi-start 0|1] "
+                      "[--max-aspect B] [--coarse-tips 0|1] [--fine-iters N]\n");
       return 2;
     }
   }
