@@ -28,7 +28,8 @@
  *     SM_EXT_ALWAYS also searches confident ones (exhaustive mode), SM_EXT_OFF never.
  *   bijective pass (default on; opts.bijective = its weight, 0 = off): the kept map is
  *     refined once more, ZoomOut from k0 in its bijective form (sm_fmap.h: the Y -> X map
- *     is fitted too and both point maps come from one nearest-neighbour problem). Tip
+ *     is fitted too and both point maps come from one nearest-neighbour problem), in the
+ *     hybrid basis when the refinement basis is elastic (opts.final_hybrid). Tip
  *     hypotheses are judged before it; only the kept map pays for it.
  *   confidence (every result; sm_confidence.h): max(0, orientation) x continuity x cycle
  *     consistency of the final maps, in [0, 1], from the shapes and maps alone.
@@ -56,8 +57,9 @@
 enum sm_match_basis { SM_MATCH_LB = 1, SM_MATCH_ELASTIC = 2, SM_MATCH_HYBRID = 3 };
 enum sm_match_init { SM_INIT_NN = 1, SM_INIT_SINKHORN = 2 };
 enum sm_match_ext { SM_EXT_OFF = 0, SM_EXT_WHEN_DOUBTFUL = 1, SM_EXT_ALWAYS = 2 };
-#define SM_MATCH_EXT_BELOW 0.5 /* see "tip search" above */
+#define SM_MATCH_EXT_BELOW 0.6 /* see "tip search" above and sm_match.c */
 #define SM_MATCH_EXT_MAX_H 12
+#define SM_MATCH_FINAL_LB_WEIGHT 0.5 /* the LB functions' weight in the hybrid final pass */
 
 typedef struct sm_shape_opts {
   int k_lb;        /* LB functions (descriptors, coarse map, lb/hybrid refinement) */
@@ -107,6 +109,8 @@ typedef struct sm_match_opts {
                           plan (soft) before the hard ZoomOut; 0 = off (default 2) */
   int samples;      /* farthest-point samples for intermediate refinement iterations */
   double bijective; /* the bijective pass's weight (see above); default 1, 0 = off */
+  int final_hybrid; /* 1 (default): with the elastic basis, the bijective pass refines in
+                       the hybrid basis (LB functions beside the elastic ones) */
   int orientation_fix; /* try the other orientation when the result looks mirrored */
   int multi_start;  /* also refine from the other init, keep the smoother map (see below) */
   int global;       /* 1: global hypothesis search (see above); 2: also orderings */
