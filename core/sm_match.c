@@ -2,8 +2,9 @@
 
 #include <cblas.h>
 #include <lapacke.h>
-#include <pthread.h>
 #include <math.h>
+#include <pthread.h>
+#include <stdatomic.h>
 #include <stdlib.h>
 #include <string.h>
 
@@ -197,6 +198,7 @@ void sm_match_opts_default(sm_match_opts *o) {
   o->extremities = SM_EXT_WHEN_DOUBTFUL;
   o->ext_below = SM_MATCH_EXT_BELOW;
   o->ext_hypotheses = 4;
+  o->threads = 1;
   /* The final bijective ZoomOut pass (bijective_pass below), weight 1 as in Ren et al.,
    * in the hybrid basis. */
   o->bijective = 1;
@@ -751,32 +753,78 @@ static int judge(const tip_judge *j, const sm_shape *x, const sm_shape *y, sm_ma
   return SM_OK;
 }
 
+/* The hypotheses' matches, on o->threads threads that take the next hypothesis as they
+ * finish one; the matches only read the shapes. They are judged afterwards, in order, on
+ * the calling thread (the judge's path searches use one handle per shape). */
+typedef struct hyp_jobs {
+  const sm_shape *x, *y;
+  const sm_match_opts *o;
+  const sm_ext_hypothesis *h;
+  int nh;
+  atomic_int next;
+  sm_match_result *r;
+  sm_error *err;
+  int *rc;
+} hyp_jobs;
+
+static void *run_hypotheses(void *arg) {
+  hyp_jobs *q = arg;
+  for (int i; (i = atomic_fetch_add(&q->next, 1)) < q->nh;) {
+    sm_match_opts ho = *q->o;
+    ho.extremities = SM_EXT_OFF;
+    ho.bijective = 0; /* the kept map gets it, once */
+    ho.landmarks = q->h[i].pairs;
+    ho.nlandmarks = q->h[i].m;
+    ho.want_yx = 1;
+    q->rc[i] = sm_match(q->x, q->y, &ho, &q->r[i], &q->err[i]);
+  }
+  return NULL;
+}
+
+/* A thread that cannot start leaves its share to the others. */
+static void match_hypotheses(hyp_jobs *q, int nthreads) {
+  pthread_t th[SM_MATCH_EXT_MAX_H];
+  int started = 0;
+  while (started + 1 < nthreads && !pthread_create(&th[started], NULL, run_hypotheses, q))
+    started++;
+  run_hypotheses(q);
+  for (int t = 0; t < started; t++) pthread_join(th[t], NULL);
+}
+
 static int tip_hypotheses(const sm_shape *x, const sm_shape *y, const sm_match_opts *o,
                           const tip_judge *j, const sm_ext_hypothesis *h, int nh,
                           sm_match_result *res, sm_error *err) {
-  double best;
-  int rc = judge(j, x, y, res, &best, err);
-  for (int i = 0; !rc && i < nh; i++) {
-    sm_match_opts ho = *o;
-    ho.extremities = SM_EXT_OFF;
-    ho.bijective = 0; /* the kept map gets it, once */
-    ho.landmarks = h[i].pairs;
-    ho.nlandmarks = h[i].m;
-    ho.want_yx = 1;
-    sm_match_result r;
+  sm_match_result *r = calloc((size_t)nh, sizeof *r);
+  sm_error *errs = calloc((size_t)nh, sizeof *errs);
+  int *rcs = calloc((size_t)nh, sizeof *rcs);
+  int rc = (!r || !errs || !rcs) ? sm_error_set(err, SM_ENOMEM, "match: out of memory") : SM_OK;
+  double best = 0;
+  if (!rc) rc = judge(j, x, y, res, &best, err);
+  if (!rc) {
+    hyp_jobs q = {.x = x, .y = y, .o = o, .h = h, .nh = nh, .r = r, .err = errs, .rc = rcs};
+    atomic_init(&q.next, 0);
+    match_hypotheses(&q, o->threads < 1 ? 1 : o->threads > nh ? nh : o->threads);
+  }
+  for (int i = 0; i < nh; i++) {
     double score;
-    if ((rc = sm_match(x, y, &ho, &r, err))) break;
-    res->ext_tried = i + 1;
-    if (!(rc = judge(j, x, y, &r, &score, err)) && score > best) {
+    if (!rc && rcs[i]) {
+      rc = rcs[i];
+      *err = errs[i];
+    }
+    if (!rc) res->ext_tried = i + 1;
+    if (!rc && !(rc = judge(j, x, y, &r[i], &score, err)) && score > best) {
       best = score;
-      r.ext_tried = res->ext_tried;
-      r.ext_hypothesis = i + 1;
+      r[i].ext_tried = res->ext_tried;
+      r[i].ext_hypothesis = i + 1;
       sm_match_result_free(res);
-      *res = r;
-    } else {
-      sm_match_result_free(&r);
+      *res = r[i];
+    } else if (r[i].T) {
+      sm_match_result_free(&r[i]);
     }
   }
+  free(r);
+  free(errs);
+  free(rcs);
   return rc;
 }
 

@@ -170,6 +170,16 @@ static void test_match_always(void) {
   CHECK(exact > 0.98 * r.nx);
   CHECK(r.confidence > 0.9);
   CHECK(r.T_yx == NULL); /* not asked for */
+  /* The hypotheses on 3 threads: the same maps judged in the same order, so the same
+   * result, bit for bit. */
+  sm_match_opts o3 = o;
+  o3.threads = 3;
+  sm_match_result r3;
+  REQUIRE(sm_match(sx, sy, &o3, &r3, &err) == 0);
+  CHECK(r3.ext_tried == r.ext_tried && r3.ext_hypothesis == r.ext_hypothesis);
+  CHECK(memcmp(r3.T, r.T, (size_t)r.nx * sizeof *r.T) == 0);
+  CHECK(r3.confidence == r.confidence && r3.turns == r.turns);
+  sm_match_result_free(&r3);
   sm_match_result_free(&r);
   o.ext_hypotheses = SM_MATCH_EXT_MAX_H + 1;
   CHECK(sm_match(sx, sy, &o, &r, &err) == SM_EINVAL);
