@@ -67,7 +67,7 @@ static int usage(FILE *f) {
           "        30,20; 960,480 pixels). --tips (local matching; the daemon uses\n"
           "        doubtful): the tip search, a landmark-free global start from the shapes'\n"
           "        tips (head, hands, feet), run when the map's confidence is doubtful\n"
-          "        (below 0.5, the default), always (slower), or off. --multires: match\n"
+          "        (below 0.6, the default), always (slower), or off. --multires: match\n"
           "        through coarse levels of about N vertices (--coarse-nv, default 5,000;\n"
           "        local only: the daemon sets its own, see shapematchd(8)) and carry the\n"
           "        map back to every vertex: auto (default) when a mesh has more than\n"
