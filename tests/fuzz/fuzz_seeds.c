@@ -197,21 +197,24 @@ static int gzip_bytes(const uint8_t *in, size_t n, uint8_t *out, size_t *outlen)
   return zr == Z_STREAM_END ? 0 : -1;
 }
 
-static int text_mesh_seed(uint8_t fmt, const char *name, const char *txt, size_t n) {
-  uint8_t gz[4096];
+/* A mesh file as is (format byte fmt) and gzip'd (fmt + 4). */
+static int mesh_seed(uint8_t fmt, const char *name, const void *p, size_t n) {
+  uint8_t gz[16384];
   size_t gzlen = sizeof gz;
   char gzname[64];
   uint8_t gzfmt = (uint8_t)(fmt + 4);
   snprintf(gzname, sizeof gzname, "%s.gz", name);
-  int rc = write_seed("meshio", name, &fmt, 1, (const uint8_t *)txt, n);
-  if (gzip_bytes((const uint8_t *)txt, n, gz, &gzlen)) return -1;
+  int rc = write_seed("meshio", name, &fmt, 1, p, n);
+  if (gzip_bytes(p, n, gz, &gzlen)) return -1;
   return rc | write_seed("meshio", gzname, &gzfmt, 1, gz, gzlen);
 }
 
 static void st_f32(uint8_t *p, float x) { memcpy(p, &x, 4); } /* little-endian hosts only */
 
-/* Binary STL (80-byte header, count, 50 bytes a facet) and binary little-endian PLY. */
-static int binary_mesh_seeds(const sm_mesh *m) {
+/* Binary STL (80-byte header, count, 50 bytes a facet) and binary little-endian PLY of m,
+ * named <stem>.stl and <stem>.ply. */
+static int binary_mesh_seeds(const char *stem, const sm_mesh *m) {
+  char name[48];
   uint8_t buf[8192];
   memset(buf, 0, 84);
   memcpy(buf, "binary stl seed", 15);
@@ -223,8 +226,8 @@ static int binary_mesh_seeds(const sm_mesh *m) {
       for (int d = 0; d < 3; d++)
         st_f32(buf + off + 12 + 12 * c + 4 * d, (float)m->V[3 * m->F[3 * f + c] + d]);
   }
-  uint8_t fmt = 3;
-  int rc = write_seed("meshio", "binary.stl", &fmt, 1, buf, off);
+  snprintf(name, sizeof name, "%s.stl", stem);
+  int rc = mesh_seed(3, name, buf, off);
   int len = snprintf((char *)buf, sizeof buf,
                      "ply\nformat binary_little_endian 1.0\nelement vertex %d\nproperty float x\n"
                      "property float y\nproperty float z\nelement face %zu\n"
@@ -236,8 +239,8 @@ static int binary_mesh_seeds(const sm_mesh *m) {
     buf[off] = 3;
     memcpy(buf + off + 1, m->F + 3 * f, 12);
   }
-  fmt = 2;
-  return rc | write_seed("meshio", "binary.ply", &fmt, 1, buf, off);
+  snprintf(name, sizeof name, "%s.ply", stem);
+  return rc | mesh_seed(2, name, buf, off);
 }
 
 /* The other Draco coders (fuzz_seeds_draco.cpp), each variant of `m` one seed. */
@@ -271,11 +274,22 @@ static sm_mesh *two_components(const sm_mesh *m) {
 static int mesh_seeds(void) {
   sm_mesh *m = NULL;
   if (sm_synth_icosphere(1, &m, NULL)) return -1;
-  int rc = text_mesh_seed(0, "tet.off", off_txt, sizeof off_txt - 1);
-  rc |= text_mesh_seed(1, "tet.obj", obj_txt, sizeof obj_txt - 1);
-  rc |= text_mesh_seed(2, "tet.ply", ply_txt, sizeof ply_txt - 1);
-  rc |= text_mesh_seed(3, "tet.stl", stl_txt, sizeof stl_txt - 1);
-  rc |= binary_mesh_seeds(m);
+  int rc = mesh_seed(0, "tet.off", off_txt, sizeof off_txt - 1);
+  rc |= mesh_seed(1, "tet.obj", obj_txt, sizeof obj_txt - 1);
+  rc |= mesh_seed(2, "tet.ply", ply_txt, sizeof ply_txt - 1);
+  rc |= mesh_seed(3, "tet.stl", stl_txt, sizeof stl_txt - 1);
+  rc |= binary_mesh_seeds("binary", m); /* 80 faces: about 4 KB of STL */
+  sm_mesh *tet = NULL;               /* the same readers on a few hundred bytes */
+  if (sm_mesh_alloc(4, 4, NULL, &tet, NULL) == 0) {
+    static const int32_t tet_f[12] = {0, 2, 1, 0, 1, 3, 0, 3, 2, 1, 2, 3};
+    memset(tet->V, 0, 12 * sizeof *tet->V);
+    for (int v = 1; v < 4; v++) tet->V[3 * v + v - 1] = 1;
+    memcpy(tet->F, tet_f, sizeof tet_f);
+    rc |= binary_mesh_seeds("binary_tet", tet);
+    sm_mesh_destroy(tet);
+  } else {
+    rc = -1;
+  }
   for (int q = 0; q <= 11; q += 11) { /* raw float32 and quantized positions */
     uint8_t *drc = NULL;
     size_t len = 0;
