@@ -692,8 +692,9 @@ static int finish(const sm_shape *x, const sm_shape *y, sm_match_result *res, sm
 static int bijective_pass(const sm_shape *x, const sm_shape *y, const sm_match_opts *o,
                           sm_match_result *res, sm_error *err) {
   double t0 = sm_now();
-  int basis = o->final_hybrid && o->basis == SM_MATCH_ELASTIC ? SM_MATCH_HYBRID : o->basis;
-  int rc = refine(x, y, o, basis, SM_MATCH_FINAL_LB_WEIGHT, o->bijective, res->T, res->C,
+  int widen = o->final_hybrid && o->basis == SM_MATCH_ELASTIC;
+  int rc = refine(x, y, o, widen ? SM_MATCH_HYBRID : o->basis,
+                  widen ? SM_MATCH_FINAL_LB_WEIGHT : 1.0, o->bijective, res->T, res->C,
                   res->T_yx, err);
   res->t_refine += sm_now() - t0;
   if (!rc) res->orientation = sm_map_orientation_score(x->mesh, y->mesh, res->T);

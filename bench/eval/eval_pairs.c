@@ -124,6 +124,9 @@ static void match_opts(const eval_config *c, int k, sm_match_opts *o) {
   if (o->k0 > k) o->k0 = k;
   o->want_yx = 1;
   if (c->init == SM_INIT_NN) o->sinkhorn_levels = 0;
+  /* The ablation compares bases: the final pass's LB functions (bench_hard measures
+   * them) would mix LB into the elastic configurations. */
+  o->final_hybrid = 0;
 }
 
 /* The map in the raw numbering; vertices cleaning dropped (none on these meshes) -> 0. */
