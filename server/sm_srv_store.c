@@ -1191,22 +1191,23 @@ int sm_store_acquire_ex(sm_store *st, const uint8_t id[32], const sm_store_key *
   }
 }
 
-int sm_store_busy(sm_store *st, const uint8_t id[32], const sm_store_key *key) {
+/* 1 when the variant (id, key) exists and is in the given state. */
+static int variant_in_state(sm_store *st, const uint8_t id[32], const sm_store_key *key,
+                            int state) {
   pthread_mutex_lock(&st->mu);
   entry *e = find(st, id);
   variant *v = e ? find_var(e, key) : NULL;
-  int busy = v && v->state == V_COMPUTING;
+  int in = v && (int)v->state == state;
   pthread_mutex_unlock(&st->mu);
-  return busy;
+  return in;
+}
+
+int sm_store_busy(sm_store *st, const uint8_t id[32], const sm_store_key *key) {
+  return variant_in_state(st, id, key, V_COMPUTING);
 }
 
 int sm_store_cached(sm_store *st, const uint8_t id[32], const sm_store_key *key) {
-  pthread_mutex_lock(&st->mu);
-  entry *e = find(st, id);
-  variant *v = e ? find_var(e, key) : NULL;
-  int ready = v && v->state == V_READY;
-  pthread_mutex_unlock(&st->mu);
-  return ready;
+  return variant_in_state(st, id, key, V_READY);
 }
 
 void sm_store_release(sm_store *st, sm_prepared *p) {
