@@ -131,6 +131,18 @@ static int assign_both(const double *EY, int32_t ny, const double *EX, int32_t n
   return rc;
 }
 
+/* The same for candidates given as y_j = L u_j (sm_knn_build_factored): the bijective
+ * embeddings, whose GEMM then runs on half the dimensions. */
+static int assign_both_factored(const double *U, int32_t ny, int dr, const double *L, int D,
+                                const double *EX, int32_t nx, int32_t *T, int32_t *T_yx,
+                                sm_error *err) {
+  sm_knn *ix = NULL;
+  int rc = sm_knn_build_factored(U, ny, dr, L, D, &ix, err);
+  if (!rc) rc = sm_knn_query_both(ix, EX, nx, 1, T, NULL, T_yx, NULL, err);
+  sm_knn_destroy(ix);
+  return rc;
+}
+
 /* ---- one-shot P -> C, C -> P, embeddings --------------------------------------------- */
 
 int sm_fmap_from_p2p(const sm_basis *x, const sm_basis *y, int k, const int32_t *T, double *C,
@@ -321,6 +333,8 @@ typedef struct zctx {
   int32_t *Sq;         /* Y -> query-row map of the last assignment (ncand or n_Y) */
   int have_s;
   double *EX, *EY, *Z;
+  double *LY;          /* bijective: D x D/2 map of the factored candidates (EY then holds
+                        * their D/2 coordinates: y = LY u, see zembed) */
   sm_zoomout_stats st;
 } zctx;
 
@@ -346,6 +360,7 @@ static void zctx_free(zctx *z) {
   free(z->Tfit);
   free(z->EX);
   free(z->EY);
+  free(z->LY);
   free(z->Z);
 }
 
@@ -509,8 +524,9 @@ static int zsetup(zctx *z, const sm_fmap_pair *pairs, const int32_t *T0, sm_erro
   if (z->sqw_y) {
     z->Sfit = malloc((size_t)z->nfit_y * sizeof(int32_t));
     z->Sq = malloc((size_t)z->ny * sizeof(int32_t));
+    z->LY = malloc((size_t)z->Dmax * (z->Dmax / 2) * sizeof(double));
   }
-  if (!z->Tfit || !z->EX || !z->EY || !z->Z || (z->sqw_y && (!z->Sfit || !z->Sq)))
+  if (!z->Tfit || !z->EX || !z->EY || !z->Z || (z->sqw_y && (!z->Sfit || !z->Sq || !z->LY)))
     return sm_error_set(err, SM_ENOMEM, "zoomout: embeddings (%d + %d rows x %d)", z->nx, z->ny,
                         z->Dmax);
   for (int32_t s = 0; s < z->nfit; s++) z->Tfit[s] = T0[z->fit ? z->fit[s] : s];
@@ -542,14 +558,32 @@ static int zfmap(zctx *z, zpair *q, sm_error *err) {
   return rc;
 }
 
+/* The bijective candidates [w Cw u, w wb u] per pair as y = LY u (LY: D x D/2, row-major,
+ * block p at rows off.., columns roff..; u: the pairs' coordinates side by side in EY,
+ * D/2 wide), so that the assignment's GEMM runs on D/2 dimensions. */
+static void zfactor(zctx *z, const zpair *q, const double *UY, int32_t nc, int D, int off,
+                    int roff) {
+  int dr = D / 2, k = q->k;
+  double wb = z->o->bijective;
+  for (int32_t r = 0; r < nc; r++)
+    memcpy(z->EY + (size_t)r * dr + roff, UY + (size_t)r * q->K, (size_t)k * sizeof(double));
+  for (int c = 0; c < k; c++) {
+    double *row = z->LY + (size_t)(off + c) * dr + roff; /* (w Cw)(c, :) */
+    for (int i = 0; i < k; i++) row[i] = q->w * q->Cw[(size_t)i * k + c];
+    z->LY[(size_t)(off + k + c) * dr + roff + c] = q->w * wb;
+  }
+}
+
 /* Embeds the queries (X samples, or all X when full_q) and the candidates (Y samples, or
  * all Y when full_c): a_i = u^X_i against b_j = Cw u^Y_j; once a Y -> X map exists
- * (bijective), [a_i, wb Dw a_i] against [b_j, wb u^Y_j]. */
+ * (bijective), [a_i, wb Dw a_i] against [b_j, wb u^Y_j], the candidates factored
+ * (zfactor). */
 static void zembed(zctx *z, int full_q, int full_c, int D) {
   int32_t nq = full_q || !z->fit ? z->nx : z->nfit;
   int32_t nc = full_c || !z->cand ? z->ny : z->ncand;
   double wb = z->o->bijective;
-  for (int p = 0, off = 0; p < z->np; p++) {
+  if (z->have_s) memset(z->LY, 0, (size_t)D * (D / 2) * sizeof(double));
+  for (int p = 0, off = 0, roff = 0; p < z->np; p++) {
     const zpair *q = &z->p[p];
     for (int32_t r = 0; r < nq; r++) {
       int32_t v = full_q || !z->fit ? r : z->fit[r];
@@ -558,16 +592,15 @@ static void zembed(zctx *z, int full_q, int full_c, int D) {
       for (int c = 0; c < q->k; c++) e[c] = q->w * u[c];
     }
     const double *UY = full_c || !z->cand ? q->UY : q->UYc;
-    apply_map(UY, q->K, nc, q->k, q->Cw, q->w, z->EY + off, D);
-    off += q->k;
-    if (!z->have_s) continue;
-    apply_map(z->EX + off - q->k, D, nq, q->k, q->Dw, wb, z->EX + off, D);
-    for (int32_t r = 0; r < nc; r++) {
-      const double *u = UY + (size_t)r * q->K;
-      double *e = z->EY + (size_t)r * D + off;
-      for (int c = 0; c < q->k; c++) e[c] = q->w * wb * u[c];
+    if (!z->have_s) {
+      apply_map(UY, q->K, nc, q->k, q->Cw, q->w, z->EY + off, D);
+      off += q->k;
+      continue;
     }
-    off += q->k;
+    apply_map(z->EX + off, D, nq, q->k, q->Dw, wb, z->EX + off + q->k, D);
+    zfactor(z, q, UY, nc, D, off, roff);
+    off += 2 * q->k;
+    roff += q->k;
   }
 }
 
@@ -600,7 +633,8 @@ static int ziterate(zctx *z, int t, int32_t *T, sm_error *err) {
   int32_t nc = full_c || !z->cand ? z->ny : z->ncand;
   int32_t *out = last ? T : z->Tfit;
   if (z->Sq) { /* bijective: both ways every time, the Y -> X map feeds the next fit */
-    rc = assign_both(z->EY, nc, z->EX, nq, D, &z->o->knn, out, z->Sq, err);
+    rc = z->have_s ? assign_both_factored(z->EY, nc, D / 2, z->LY, D, z->EX, nq, out, z->Sq, err)
+                   : assign_both(z->EY, nc, z->EX, nq, D, &z->o->knn, out, z->Sq, err);
     if (!rc && !full_c && z->cand)
       for (int32_t i = 0; i < nq; i++) out[i] = z->cand[out[i]];
     if (!rc && last && z->T_yx) memcpy(z->T_yx, z->Sq, (size_t)z->ny * sizeof(int32_t));

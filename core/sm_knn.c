@@ -74,11 +74,15 @@ struct sm_knn {
   int strategy;
   int32_t ny;
   int d;
+  int ds;          /* brute: dimension of the screening product (d, or dr when factored) */
   double *Y;       /* caller's points, copied (exact distances are taken on these) */
-  float *Ya;       /* brute: rows [-2 yc_j, |yc_j|^2], yc_j = s (y_j - center), d + 1 wide */
-  double *center;  /* brute: mean of Y */
+  float *Ya;       /* brute: rows [-2 yc_j, |yc_j|^2], yc_j = s (y_j - center), ds + 1 wide;
+                    * factored: [-2 s (u_j - ubar), |yc_j|^2] */
+  double *L;       /* factored: the d x dr map (row-major), y = L u; NULL otherwise */
+  double *center;  /* brute: mean of Y (factored: L ubar) */
   double scale;    /* brute: s, a power of two */
   double ymax2;    /* brute: max_j |yc_j|^2, in [1/4, 1) (or 0) */
+  double sy;       /* brute: the index's part of the rounding bound (see screen_delta) */
   flann_index_t flann;
   struct FLANNParameters fp;
 };
@@ -127,16 +131,48 @@ static double unit_scale(double r2) {
   return ldexp(1.0, -e);
 }
 
-static int build_brute(sm_knn *ix, sm_error *err) {
+/* Mean of the n rows of A (n x d) into c (zeroed by the caller). */
+static void row_mean(const double *A, int32_t n, int d, double *c) {
+  for (int32_t j = 0; j < n; j++)
+    for (int t = 0; t < d; t++) c[t] += A[(size_t)j * d + t];
+  for (int t = 0; t < d; t++) c[t] /= n;
+}
+
+/* Factored screening rows: Ya[j, :dr] = -2 s (u_j - ubar), and the reduced part of the
+ * rounding bound, max_j |s (u_j - ubar)|^2. */
+static double factored_rows(sm_knn *ix, const double *U, const double *ubar) {
+  int dr = ix->ds;
+  double m = 0;
+  for (int32_t j = 0; j < ix->ny; j++) {
+    double s = 0;
+    float *ya = ix->Ya + (size_t)j * (dr + 1);
+    for (int t = 0; t < dr; t++) {
+      double c = ix->scale * (U[(size_t)j * dr + t] - ubar[t]);
+      ya[t] = (float)(-2 * c);
+      s += c * c;
+    }
+    if (s > m) m = s;
+  }
+  return m;
+}
+
+/* U != NULL: factored index (Y = U L^T already in ix->Y, L in ix->L, ds = dr columns). */
+static int build_brute(sm_knn *ix, const double *U, sm_error *err) {
   int32_t ny = ix->ny;
-  int d = ix->d;
-  ix->Ya = malloc((size_t)ny * (d + 1) * sizeof(float));
+  int d = ix->d, ds = ix->ds;
+  ix->Ya = malloc((size_t)ny * (ds + 1) * sizeof(float));
   ix->center = calloc((size_t)d, sizeof(double));
-  if (!ix->Ya || !ix->center)
+  double *ubar = U ? calloc((size_t)ds, sizeof(double)) : NULL;
+  if (!ix->Ya || !ix->center || (U && !ubar)) {
+    free(ubar);
     return sm_error_set(err, SM_ENOMEM, "knn: brute-force index of %d x %d", ny, d);
-  for (int32_t j = 0; j < ny; j++)
-    for (int t = 0; t < d; t++) ix->center[t] += ix->Y[(size_t)j * d + t];
-  for (int t = 0; t < d; t++) ix->center[t] /= ny;
+  }
+  if (U) { /* center = L ubar, so that y_j - center = L (u_j - ubar) */
+    row_mean(U, ny, ds, ubar);
+    cblas_dgemv(CblasRowMajor, CblasNoTrans, d, ds, 1.0, ix->L, ds, ubar, 1, 0.0, ix->center, 1);
+  } else {
+    row_mean(ix->Y, ny, d, ix->center);
+  }
   double r2 = 0;
   for (int32_t j = 0; j < ny; j++) {
     double s = 0;
@@ -150,15 +186,18 @@ static int build_brute(sm_knn *ix, sm_error *err) {
   ix->ymax2 = 0;
   for (int32_t j = 0; j < ny; j++) {
     double s = 0;
-    float *ya = ix->Ya + (size_t)j * (d + 1);
+    float *ya = ix->Ya + (size_t)j * (ds + 1);
     for (int t = 0; t < d; t++) {
       double c = ix->scale * (ix->Y[(size_t)j * d + t] - ix->center[t]);
-      ya[t] = (float)(-2 * c);
+      if (!U) ya[t] = (float)(-2 * c);
       s += c * c;
     }
-    ya[d] = (float)s;
+    ya[ds] = (float)s;
     if (s > ix->ymax2) ix->ymax2 = s;
   }
+  ix->sy = ix->ymax2;
+  if (U) ix->sy += factored_rows(ix, U, ubar);
+  free(ubar);
   return 0;
 }
 
@@ -203,6 +242,7 @@ int sm_knn_build(const double *Y, int32_t ny, int d, const sm_knn_opts *o, sm_kn
   if (!ix) return sm_error_set(err, SM_ENOMEM, "knn: index");
   ix->ny = ny;
   ix->d = d;
+  ix->ds = d;
   int cross = o->crossover_d > 0 ? o->crossover_d : SM_KNN_CROSSOVER_D;
   ix->strategy = o->strategy != SM_KNN_AUTO ? o->strategy
                  : d < cross                 ? SM_KNN_KDTREE
@@ -213,7 +253,41 @@ int sm_knn_build(const double *Y, int32_t ny, int d, const sm_knn_opts *o, sm_kn
     return sm_error_set(err, SM_ENOMEM, "knn: copy of %d x %d points", ny, d);
   }
   memcpy(ix->Y, Y, (size_t)ny * d * sizeof(double));
-  rc = ix->strategy == SM_KNN_BRUTE ? build_brute(ix, err) : build_flann(ix, o, err);
+  rc = ix->strategy == SM_KNN_BRUTE ? build_brute(ix, NULL, err) : build_flann(ix, o, err);
+  if (rc) {
+    sm_knn_destroy(ix);
+    return rc;
+  }
+  *out = ix;
+  return 0;
+}
+
+int sm_knn_build_factored(const double *U, int32_t ny, int dr, const double *L, int d,
+                          sm_knn **out, sm_error *err) {
+  *out = NULL;
+  if (!U || !L || ny < 1 || dr < 1 || d < 1)
+    return sm_error_set(err, SM_EINVAL, "knn: bad factored point set (ny=%d, dr=%d, d=%d)", ny,
+                        dr, d);
+  int rc = check_finite(U, (int64_t)ny * dr, "U", err);
+  if (!rc) rc = check_finite(L, (int64_t)d * dr, "L", err);
+  if (rc) return rc;
+  sm_knn *ix = calloc(1, sizeof *ix);
+  if (!ix) return sm_error_set(err, SM_ENOMEM, "knn: index");
+  ix->strategy = SM_KNN_BRUTE;
+  ix->ny = ny;
+  ix->d = d;
+  ix->ds = dr;
+  ix->Y = malloc((size_t)ny * d * sizeof(double));
+  ix->L = malloc((size_t)d * dr * sizeof(double));
+  if (!ix->Y || !ix->L) {
+    sm_knn_destroy(ix);
+    return sm_error_set(err, SM_ENOMEM, "knn: factored index of %d x %d", ny, d);
+  }
+  memcpy(ix->L, L, (size_t)d * dr * sizeof(double));
+  cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasTrans, ny, d, dr, 1.0, U, dr, L, dr, 0.0, ix->Y,
+              d);
+  rc = check_finite(ix->Y, (int64_t)ny * d, "Y = U L^T", err);
+  if (!rc) rc = build_brute(ix, U, err);
   if (rc) {
     sm_knn_destroy(ix);
     return rc;
@@ -231,6 +305,7 @@ void sm_knn_destroy(sm_knn *ix) {
   }
   free(ix->Y);
   free(ix->Ya);
+  free(ix->L);
   free(ix->center);
   free(ix);
 }
@@ -313,7 +388,9 @@ typedef struct screen_lists {
 
 typedef struct brute_ws {
   float *Xc, *G;
-  double *xn;
+  double *xn;        /* |s (x - center)|^2 per query row */
+  double *sn;        /* the row's part of the rounding bound: xn, or |x''|^2 when factored */
+  double *Xd;        /* factored: BLK_X rows of s (x - center), then of x'' = L^T of them */
   screen_lists rows; /* BLK_X query rows */
   screen_lists cols; /* two-way query: one list per Y point; lv == NULL otherwise */
   double *dv;
@@ -342,6 +419,8 @@ static void brute_ws_free(brute_ws *w) {
   free(w->Xc);
   free(w->G);
   free(w->xn);
+  free(w->sn);
+  free(w->Xd);
   lists_free(&w->rows);
   lists_free(&w->cols);
   free(w->dv);
@@ -350,19 +429,21 @@ static void brute_ws_free(brute_ws *w) {
 }
 
 /* Xc / xn: BLK_X rows, or all nx when two-way (the column rescreen needs every row). */
-static int brute_ws_alloc(brute_ws *w, int d, int32_t nx, int32_t ny, int cap, int capc,
+static int brute_ws_alloc(brute_ws *w, const sm_knn *ix, int32_t nx, int cap, int capc,
                           int two_way) {
   memset(w, 0, sizeof *w);
-  int32_t nr = two_way ? nx : BLK_X, nmax = nx > ny ? nx : ny;
+  int32_t ny = ix->ny, nr = two_way ? nx : BLK_X, nmax = nx > ny ? nx : ny;
   int nbuf = cap > RESCREEN_MAX ? cap : RESCREEN_MAX;
   if (capc > nbuf) nbuf = capc;
-  w->Xc = malloc((size_t)nr * (d + 1) * sizeof(float));
+  w->Xc = malloc((size_t)nr * (ix->ds + 1) * sizeof(float));
   w->xn = malloc((size_t)nr * sizeof(double));
+  w->sn = malloc((size_t)nr * sizeof(double));
+  if (ix->L && !(w->Xd = malloc((size_t)BLK_X * (ix->d + ix->ds) * sizeof(double)))) return -1;
   w->G = calloc((size_t)BLK_X * BLK_Y, sizeof(float)); /* kept zero between blocks */
   w->dv = malloc((size_t)nbuf * sizeof(double));
   w->iv = malloc((size_t)nbuf * sizeof(int32_t));
   w->vec = malloc((size_t)nmax * sizeof(float));
-  if (!w->Xc || !w->xn || !w->G || !w->dv || !w->iv || !w->vec) return -1;
+  if (!w->Xc || !w->xn || !w->sn || !w->G || !w->dv || !w->iv || !w->vec) return -1;
   if (lists_alloc(&w->rows, BLK_X, cap)) return -1;
   return two_way ? lists_alloc(&w->cols, ny, capc) : 0;
 }
@@ -371,25 +452,58 @@ static int brute_ws_alloc(brute_ws *w, int d, int32_t nx, int32_t ny, int cap, i
  * (its float products could overflow, and its delta would fail the test anyway). */
 #define SCREEN_MAX_XN 1e24
 
-/* Float rows [s (x_r - center), 1] (stride d + 1) and xn_r = |s (x_r - center)|^2, or
- * INFINITY (and a zero row) when the row is not screenable. Returns how many are not. */
+/* Factored index: rows r0 .. r0 + n - 1 (n <= BLK_X) of the query as x'' = L^T s (x -
+ * center) in float (stride dr + 1), sn = |x''|^2; rows with xn = INFINITY stay zero. */
+static int32_t screen_factored(const sm_knn *ix, const double *X, int32_t n, double *Xd,
+                               float *Xc, const double *xn, double *sn) {
+  int d = ix->d, dr = ix->ds;
+  double *R = Xd + (size_t)BLK_X * d;
+  int32_t bad = 0;
+  for (int32_t r = 0; r < n; r++)
+    for (int t = 0; t < d; t++)
+      Xd[(size_t)r * d + t] = isfinite(xn[r]) ? ix->scale * (X[(size_t)r * d + t] - ix->center[t]) : 0;
+  cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, n, dr, d, 1.0, Xd, d, ix->L, dr, 0.0, R,
+              dr);
+  for (int32_t r = 0; r < n; r++) {
+    double s = 0;
+    for (int t = 0; t < dr; t++) s += R[(size_t)r * dr + t] * R[(size_t)r * dr + t];
+    int ok = isfinite(xn[r]) && s <= SCREEN_MAX_XN;
+    float *xc = Xc + (size_t)r * (dr + 1);
+    for (int t = 0; t < dr; t++) xc[t] = ok ? (float)R[(size_t)r * dr + t] : 0.0f;
+    xc[dr] = 1;
+    sn[r] = ok ? s : INFINITY;
+    bad += !ok;
+  }
+  return bad;
+}
+
+/* Float rows [s (x_r - center), 1] (stride ds + 1; factored: [x''_r, 1]), xn_r = |s (x_r -
+ * center)|^2 and sn_r (see brute_ws), or INFINITY (and a zero row) when the row is not
+ * screenable. Xd: the factored workspace. Returns how many rows are not screenable. */
 static int32_t screen_rows(const sm_knn *ix, const double *X, int32_t n, float *Xc,
-                           double *xn) {
-  int d = ix->d;
+                           double *xn, double *sn, double *Xd) {
+  int d = ix->d, ds = ix->ds;
   int32_t bad = 0;
   for (int32_t r = 0; r < n; r++) {
     double s = 0;
-    float *xc = Xc + (size_t)r * (d + 1);
+    float *xc = Xc + (size_t)r * (ds + 1);
     for (int t = 0; t < d; t++) {
       double c = ix->scale * (X[(size_t)r * d + t] - ix->center[t]);
       s += c * c;
     }
     int ok = s <= SCREEN_MAX_XN;
-    for (int t = 0; t < d; t++)
+    for (int t = 0; t < d && !ix->L; t++)
       xc[t] = ok ? (float)(ix->scale * (X[(size_t)r * d + t] - ix->center[t])) : 0.0f;
-    xc[d] = 1; /* picks up |y|^2 from the last column of Ya */
-    xn[r] = ok ? s : INFINITY;
+    xc[ds] = 1; /* picks up |y|^2 from the last column of Ya */
+    xn[r] = sn[r] = ok ? s : INFINITY;
     bad += !ok;
+  }
+  if (!ix->L) return bad;
+  bad = 0;
+  for (int32_t r0 = 0; r0 < n; r0 += BLK_X) {
+    int32_t m = n - r0 < BLK_X ? n - r0 : BLK_X;
+    bad += screen_factored(ix, X + (size_t)r0 * d, m, Xd, Xc + (size_t)r0 * (ds + 1), xn + r0,
+                           sn + r0);
   }
   return bad;
 }
@@ -515,9 +629,13 @@ static void finish_list(brute_ws *w, const double *P, int32_t n, int d, const do
   memcpy(iv, w->iv, (size_t)K * sizeof *iv);
 }
 
-/* Rounding bound of a screening value (DESIGN): u = 2^-24. */
-static double screen_delta(int d, double xn, double ymax2) {
-  return 4.0 * (d + 4) * 5.9604644775390625e-08 * (xn + ymax2);
+/* Rounding bound of a screening value (DESIGN): u = 2^-24, ds = the product's length,
+ * sn the row's part, sy the index's. Factored (y = L u, x'' = L^T s (x - center)): the
+ * value |yc|^2 - 2 x''.u'' has error <= (dr + 4) u (2 |yc|^2 + |x''|^2 + |u''|^2), so sn =
+ * |x''|^2 and sy = max |yc|^2 + max |u''|^2 keep the factor 2 to spare of the plain bound,
+ * 4 (d + 4) u (|xc|^2 + max |yc|^2). */
+static double screen_delta(int ds, double sn, double sy) {
+  return 4.0 * (ds + 4) * 5.9604644775390625e-08 * (sn + sy);
 }
 
 typedef struct row_fill { const sm_knn *ix; const float *xc; } row_fill;
@@ -525,30 +643,30 @@ typedef struct row_fill { const sm_knn *ix; const float *xc; } row_fill;
 /* Screening values of one query row against all of Y (sgemv). */
 static void fill_row(const void *vctx, float *vec) {
   const row_fill *c = vctx;
-  cblas_sgemv(CblasRowMajor, CblasNoTrans, c->ix->ny, c->ix->d + 1, 1.0f, c->ix->Ya,
-              c->ix->d + 1, c->xc, 1, 0.0f, vec, 1);
+  cblas_sgemv(CblasRowMajor, CblasNoTrans, c->ix->ny, c->ix->ds + 1, 1.0f, c->ix->Ya,
+              c->ix->ds + 1, c->xc, 1, 0.0f, vec, 1);
 }
 
-/* Rows i0 .. i0 + bx - 1 of the query (their float rows Xc and constants xn) against all
- * of Y: GEMM blocks, scans, then the exact K nearest of each row. */
+/* Rows i0 .. i0 + bx - 1 of the query (their float rows Xc, constants xn and bound parts
+ * sn) against all of Y: GEMM blocks, scans, then the exact K nearest of each row. */
 static void brute_rows(const sm_knn *ix, brute_ws *w, const float *Xc, const double *xn,
-                       const double *X, int32_t i0, int bx, int K, int cap, int capc,
-                       int32_t *idx, double *dist2) {
-  int d = ix->d;
+                       const double *sn, const double *X, int32_t i0, int bx, int K, int cap,
+                       int capc, int32_t *idx, double *dist2) {
+  int d = ix->d, ds = ix->ds;
   for (int r = 0; r < bx; r++) {
     w->rows.cnt[r] = 0;
     w->rows.thr[r] = INFINITY;
   }
   for (int32_t j0 = 0; j0 < ix->ny; j0 += BLK_Y) {
     int by = ix->ny - j0 < BLK_Y ? ix->ny - j0 : BLK_Y;
-    cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasTrans, bx, by, d + 1, 1.0f, Xc, d + 1,
-                ix->Ya + (size_t)j0 * (d + 1), d + 1, 1.0f, w->G, by);
+    cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasTrans, bx, by, ds + 1, 1.0f, Xc, ds + 1,
+                ix->Ya + (size_t)j0 * (ds + 1), ds + 1, 1.0f, w->G, by);
     scan_block(w, xn, bx, i0, j0, by, cap, capc);
   }
   for (int r = 0; r < bx; r++) {
-    row_fill c = {ix, Xc + (size_t)r * (d + 1)};
+    row_fill c = {ix, Xc + (size_t)r * (ds + 1)};
     finish_list(w, ix->Y, ix->ny, d, X + (size_t)(i0 + r) * d, w->rows.lv + (size_t)r * cap,
-                w->rows.li + (size_t)r * cap, K, cap, screen_delta(d, xn[r], ix->ymax2),
+                w->rows.li + (size_t)r * cap, K, cap, screen_delta(ds, sn[r], ix->sy),
                 fill_row, &c, dist2 + (size_t)(i0 + r) * K, idx + (size_t)(i0 + r) * K);
   }
 }
@@ -558,14 +676,14 @@ static int query_brute(const sm_knn *ix, const double *X, int32_t nx, int K, int
   /* The (K + SCREEN_EXTRA)-th candidate certifies the K-th. */
   int cap = K + SCREEN_EXTRA < ix->ny ? K + SCREEN_EXTRA : ix->ny;
   brute_ws w;
-  if (brute_ws_alloc(&w, ix->d, nx, ix->ny, cap, 0, 0)) {
+  if (brute_ws_alloc(&w, ix, nx, cap, 0, 0)) {
     brute_ws_free(&w);
     return sm_error_set(err, SM_ENOMEM, "knn: brute-force workspace (K=%d, d=%d)", K, ix->d);
   }
   for (int32_t i0 = 0; i0 < nx; i0 += BLK_X) {
     int bx = nx - i0 < BLK_X ? nx - i0 : BLK_X;
-    screen_rows(ix, X + (size_t)i0 * ix->d, bx, w.Xc, w.xn);
-    brute_rows(ix, &w, w.Xc, w.xn, X, i0, bx, K, cap, 0, idx, dist2);
+    screen_rows(ix, X + (size_t)i0 * ix->d, bx, w.Xc, w.xn, w.sn, w.Xd);
+    brute_rows(ix, &w, w.Xc, w.xn, w.sn, X, i0, bx, K, cap, 0, idx, dist2);
   }
   brute_ws_free(&w);
   return 0;
@@ -581,9 +699,9 @@ typedef struct col_fill {
 /* Screening values (full squared distances) of Y point j against every query row. */
 static void fill_col(const void *vctx, float *vec) {
   const col_fill *c = vctx;
-  int d = c->ix->d;
-  cblas_sgemv(CblasRowMajor, CblasNoTrans, c->nx, d + 1, 1.0f, c->Xc, d + 1,
-              c->ix->Ya + (size_t)c->j * (d + 1), 1, 0.0f, vec, 1);
+  int ds = c->ix->ds;
+  cblas_sgemv(CblasRowMajor, CblasNoTrans, c->nx, ds + 1, 1.0f, c->Xc, ds + 1,
+              c->ix->Ya + (size_t)c->j * (ds + 1), 1, 0.0f, vec, 1);
   for (int32_t i = 0; i < c->nx; i++) vec[i] += (float)c->xn[i];
 }
 
@@ -592,27 +710,31 @@ static void fill_col(const void *vctx, float *vec) {
 static int query_both_brute(const sm_knn *ix, const double *X, int32_t nx, int K,
                             int32_t *idx, double *dist2, int32_t *idx_yx, double *dist_yx,
                             sm_error *err) {
-  int d = ix->d;
+  int d = ix->d, ds = ix->ds;
   int cap = K + SCREEN_EXTRA < ix->ny ? K + SCREEN_EXTRA : ix->ny;
   int capc = K + SCREEN_EXTRA < nx ? K + SCREEN_EXTRA : nx;
   brute_ws w;
-  if (brute_ws_alloc(&w, d, nx, ix->ny, cap, capc, 1)) {
+  if (brute_ws_alloc(&w, ix, nx, cap, capc, 1)) {
     brute_ws_free(&w);
     return sm_error_set(err, SM_ENOMEM, "knn: two-way workspace (K=%d, d=%d)", K, d);
   }
-  if (screen_rows(ix, X, nx, w.Xc, w.xn)) {
+  if (screen_rows(ix, X, nx, w.Xc, w.xn, w.sn, w.Xd)) {
     brute_ws_free(&w);
     return 1;
   }
-  double xmax2 = 0;
-  for (int32_t i = 0; i < nx; i++) xmax2 = w.xn[i] > xmax2 ? w.xn[i] : xmax2;
+  double xmax2 = 0, smax = 0;
+  for (int32_t i = 0; i < nx; i++) {
+    xmax2 = w.xn[i] > xmax2 ? w.xn[i] : xmax2;
+    smax = w.sn[i] > smax ? w.sn[i] : smax;
+  }
   for (int32_t i0 = 0; i0 < nx; i0 += BLK_X) {
     int bx = nx - i0 < BLK_X ? nx - i0 : BLK_X;
-    brute_rows(ix, &w, w.Xc + (size_t)i0 * (d + 1), w.xn + i0, X, i0, bx, K, cap, capc, idx,
-               dist2);
+    brute_rows(ix, &w, w.Xc + (size_t)i0 * (ds + 1), w.xn + i0, w.sn + i0, X, i0, bx, K, cap,
+               capc, idx, dist2);
   }
-  /* A column value also rounds xn to float and adds: two more units in the bound. */
-  double delta = screen_delta(d + 2, xmax2, ix->ymax2);
+  /* A column value also rounds xn to float and adds: two more units in the bound, and
+   * (factored) the added xn itself. */
+  double delta = screen_delta(ds + 2, smax, ix->sy + (ix->L ? xmax2 : 0));
   for (int32_t j = 0; j < ix->ny; j++) {
     col_fill c = {ix, w.Xc, w.xn, nx, j};
     finish_list(&w, X, nx, d, ix->Y + (size_t)j * d, w.cols.lv + (size_t)j * capc,

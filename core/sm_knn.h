@@ -57,6 +57,15 @@ void sm_knn_opts_default(sm_knn_opts *o);
 /* o may be NULL (defaults). */
 int sm_knn_build(const double *Y, int32_t ny, int d, const sm_knn_opts *o, sm_knn **out,
                  sm_error *err);
+/* A brute-force index of points known as a linear image of fewer coordinates: y_j = L u_j,
+ * U row-major ny x dr, L row-major d x dr (both copied; Y = U L^T is formed here). Queries
+ * take full d-dimensional rows and answer exactly what sm_knn_build(Y) with the brute-force
+ * strategy would (same indices, same distances, bit for bit): only the float screening
+ * product runs in dr dimensions (x -> L^T x), the certification and the distances stay in
+ * d. Pays when dr is well below d: ZoomOut's bijective embeddings are [C u, u]-shaped,
+ * twice the dimensions of their coordinates. Errors as sm_knn_build. */
+int sm_knn_build_factored(const double *U, int32_t ny, int dr, const double *L, int d,
+                          sm_knn **out, sm_error *err);
 int sm_knn_query(const sm_knn *ix, const double *X, int32_t nx, int K, int32_t *idx,
                  double *dist2, sm_error *err);
 /* Both directions at once: idx / dist2 (nx x K) as sm_knn_query(ix, X, ...), and idx_yx /

@@ -4,6 +4,8 @@
  * ZoomOut, and ZoomOut recovering a vertex permutation (LB, elastic, hybrid). */
 #include <string.h>
 
+#include <cblas.h>
+
 #include "sm_basis.h"
 #include "sm_fmap.h"
 #include "sm_knn.h"
@@ -194,6 +196,59 @@ static void test_knn_scales(void) {
     free(Y);
     free(X);
   }
+}
+
+/* A factored index (y = L u) against the naive search on Y = U L^T, one-way and two-way.
+ * Dyadic entries (dyadic = 1) make Y exact whatever the summation order, and put many
+ * points at equal distances; otherwise Y comes from the same dgemm the index uses. */
+static void run_knn_factored(int ny, int dr, int d, int nx, int K, int dyadic, double far,
+                             uint64_t *s) {
+  double *U = random_points(ny, dr, -1, 1, s), *L = random_points(d, dr, -1, 1, s);
+  double *X = random_points(nx, d, -1, 1, s), *Y = malloc((size_t)ny * d * sizeof *Y);
+  if (dyadic) {
+    for (int64_t i = 0; i < (int64_t)ny * dr; i++) U[i] = floor(8 * U[i]) / 8;
+    for (int64_t i = 0; i < (int64_t)d * dr; i++) L[i] = floor(4 * L[i]) / 4;
+    for (int64_t i = 0; i < (int64_t)nx * d; i++) X[i] = floor(8 * X[i]) / 4;
+  }
+  for (int i = 0; i < nx; i += 3)
+    for (int t = 0; t < d; t++) X[(size_t)i * d + t] *= far; /* every third row far out */
+  cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasTrans, ny, d, dr, 1.0, U, dr, L, dr, 0.0, Y, d);
+  int32_t *idx = malloc((size_t)nx * K * sizeof *idx), *iyx = malloc((size_t)ny * K * sizeof *iyx);
+  double *dist = malloc((size_t)nx * K * sizeof *dist), *dyx = malloc((size_t)ny * K * sizeof *dyx);
+  sm_knn *ix = NULL;
+  sm_error err;
+  int rc = sm_knn_build_factored(U, ny, dr, L, d, &ix, &err);
+  if (!rc) rc = sm_knn_query(ix, X, nx, K, idx, dist, &err);
+  if (rc) fprintf(stderr, "knn factored: %s\n", err.msg);
+  REQUIRE(rc == 0);
+  CHECK(sm_knn_strategy_of(ix) == SM_KNN_BRUTE);
+  int bad = compare_knn(Y, ny, X, nx, d, K, idx, dist, 1);
+  rc = sm_knn_query_both(ix, X, nx, K, idx, dist, iyx, dyx, &err);
+  REQUIRE(rc == 0);
+  int bad2 = compare_knn(Y, ny, X, nx, d, K, idx, dist, 1);
+  int bad_yx = compare_knn(X, nx, Y, ny, d, K, iyx, dyx, 1);
+  CHECK_MSG(bad == 0 && bad2 == 0 && bad_yx == 0,
+            "factored dr=%d d=%d K=%d dyadic=%d far=%g: %d / %d + %d rows differ", dr, d, K,
+            dyadic, far, bad, bad2, bad_yx);
+  sm_knn_destroy(ix);
+  free(U), free(L), free(X), free(Y), free(idx), free(iyx), free(dist), free(dyx);
+}
+
+static void test_knn_factored(void) {
+  uint64_t s = 4711;
+  run_knn_factored(2100, 20, 40, 300, 1, 0, 1, &s);
+  run_knn_factored(2100, 50, 100, 301, 3, 0, 1, &s);
+  run_knn_factored(1500, 7, 31, 200, 5, 0, 1, &s);
+  run_knn_factored(1500, 12, 24, 200, 4, 1, 1, &s);  /* ties */
+  run_knn_factored(1300, 16, 32, 150, 1, 1, 1, &s);
+  run_knn_factored(1300, 16, 32, 150, 2, 0, 1e20, &s); /* rows too far to screen */
+  run_knn_factored(1300, 16, 32, 150, 2, 0, 1e3, &s);
+  double U[4] = {0, 1, 2, 3}, L[2] = {1, 0};
+  sm_knn *ix = NULL;
+  sm_error err;
+  CHECK(sm_knn_build_factored(U, 4, 1, L, 0, &ix, &err) == SM_EINVAL && !ix);
+  U[2] = NAN;
+  CHECK(sm_knn_build_factored(U, 4, 1, L, 2, &ix, &err) == SM_ENONFINITE && !ix);
 }
 
 static void test_knn_errors(void) {
@@ -605,6 +660,7 @@ int main(void) {
   test_knn_ties();
   test_knn_cancellation();
   test_knn_scales();
+  test_knn_factored();
   test_knn_errors();
   test_identity();
   test_p2p_formula();
