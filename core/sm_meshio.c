@@ -664,22 +664,33 @@ static int ply_item_error(const char *name, const char *what, long long item, sm
   return sm_error_set(err, SM_EFORMAT, "%s: %s %lld: %s", name, "element item", item, what);
 }
 
+/* A list count or face index read as a double: 0 when it is a whole number within int32.
+ * The range is tested before any conversion: converting inf, NaN or a number beyond the
+ * integer type (an ascii "1e30", a binary double) is undefined behaviour in C. */
+static int ply_whole_i32(double x, int32_t *out) {
+  if (!(x >= INT32_MIN && x <= INT32_MAX)) return -1;
+  int32_t i = (int32_t)x;
+  if ((double)i != x) return -1;
+  *out = i;
+  return 0;
+}
+
 static int ply_list(ply_rd *r, const ply_prop *p, fan *fn, long long item, sm_error *err) {
-  double cnt, x;
+  double v, x;
+  int32_t cnt, idx;
   const char *name = r->c.name;
-  if (ply_value(r, p->list_type, &cnt)) return ply_item_error(name, "truncated or malformed list count", item, err);
-  if (cnt < 0 || cnt != (double)(long long)cnt || cnt > INT32_MAX)
-    return ply_item_error(name, "bad list count", item, err);
+  if (ply_value(r, p->list_type, &v)) return ply_item_error(name, "truncated or malformed list count", item, err);
+  if (ply_whole_i32(v, &cnt) || cnt < 0)
+    return ply_item_error(name, "bad list count (not a whole number in [0, 2^31))", item, err);
   if (p->role == ROLE_FACE) {
     if (cnt < 3) return ply_item_error(name, "face has fewer than 3 corners", item, err);
     fan_begin(fn);
   }
-  for (long long k = 0; k < (long long)cnt; k++) {
+  for (int32_t k = 0; k < cnt; k++) {
     if (ply_value(r, p->type, &x)) return ply_item_error(name, "truncated or malformed list", item, err);
     if (p->role != ROLE_FACE) continue;
-    if (x != (double)(long long)x || x < INT32_MIN || x > INT32_MAX)
-      return ply_item_error(name, "face index is not a 32-bit integer", item, err);
-    fan_add(fn, (int32_t)x);
+    if (ply_whole_i32(x, &idx)) return ply_item_error(name, "face index is not a 32-bit integer", item, err);
+    fan_add(fn, idx);
   }
   return 0;
 }
