@@ -134,10 +134,10 @@ static int assign_both(const double *EY, int32_t ny, const double *EX, int32_t n
 /* The same for candidates given as y_j = L u_j (sm_knn_build_factored): the bijective
  * embeddings, whose GEMM then runs on half the dimensions. */
 static int assign_both_factored(const double *U, int32_t ny, int dr, const double *L, int D,
-                                const double *EX, int32_t nx, int32_t *T, int32_t *T_yx,
-                                sm_error *err) {
+                                const double *EX, int32_t nx, const sm_knn_opts *ko,
+                                int32_t *T, int32_t *T_yx, sm_error *err) {
   sm_knn *ix = NULL;
-  int rc = sm_knn_build_factored(U, ny, dr, L, D, &ix, err);
+  int rc = sm_knn_build_factored(U, ny, dr, L, D, ko, &ix, err);
   if (!rc) rc = sm_knn_query_both(ix, EX, nx, 1, T, NULL, T_yx, NULL, err);
   sm_knn_destroy(ix);
   return rc;
@@ -633,7 +633,8 @@ static int ziterate(zctx *z, int t, int32_t *T, sm_error *err) {
   int32_t nc = full_c || !z->cand ? z->ny : z->ncand;
   int32_t *out = last ? T : z->Tfit;
   if (z->Sq) { /* bijective: both ways every time, the Y -> X map feeds the next fit */
-    rc = z->have_s ? assign_both_factored(z->EY, nc, D / 2, z->LY, D, z->EX, nq, out, z->Sq, err)
+    rc = z->have_s ? assign_both_factored(z->EY, nc, D / 2, z->LY, D, z->EX, nq, &z->o->knn, out,
+                                          z->Sq, err)
                    : assign_both(z->EY, nc, z->EX, nq, D, &z->o->knn, out, z->Sq, err);
     if (!rc && !full_c && z->cand)
       for (int32_t i = 0; i < nq; i++) out[i] = z->cand[out[i]];

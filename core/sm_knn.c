@@ -83,6 +83,7 @@ struct sm_knn {
   double scale;    /* brute: s, a power of two */
   double ymax2;    /* brute: max_j |yc_j|^2, in [1/4, 1) (or 0) */
   double sy;       /* brute: the index's part of the rounding bound (see screen_delta) */
+  int threads;     /* brute: query rows split over this many threads (opts.query_threads) */
   flann_index_t flann;
   struct FLANNParameters fp;
 };
@@ -243,6 +244,7 @@ int sm_knn_build(const double *Y, int32_t ny, int d, const sm_knn_opts *o, sm_kn
   ix->ny = ny;
   ix->d = d;
   ix->ds = d;
+  ix->threads = o->query_threads > 1 ? o->query_threads : 1;
   int cross = o->crossover_d > 0 ? o->crossover_d : SM_KNN_CROSSOVER_D;
   ix->strategy = o->strategy != SM_KNN_AUTO ? o->strategy
                  : d < cross                 ? SM_KNN_KDTREE
@@ -263,7 +265,7 @@ int sm_knn_build(const double *Y, int32_t ny, int d, const sm_knn_opts *o, sm_kn
 }
 
 int sm_knn_build_factored(const double *U, int32_t ny, int dr, const double *L, int d,
-                          sm_knn **out, sm_error *err) {
+                          const sm_knn_opts *o, sm_knn **out, sm_error *err) {
   *out = NULL;
   if (!U || !L || ny < 1 || dr < 1 || d < 1)
     return sm_error_set(err, SM_EINVAL, "knn: bad factored point set (ny=%d, dr=%d, d=%d)", ny,
@@ -277,6 +279,7 @@ int sm_knn_build_factored(const double *U, int32_t ny, int dr, const double *L, 
   ix->ny = ny;
   ix->d = d;
   ix->ds = dr;
+  ix->threads = o && o->query_threads > 1 ? o->query_threads : 1;
   ix->Y = malloc((size_t)ny * d * sizeof(double));
   ix->L = malloc((size_t)d * dr * sizeof(double));
   if (!ix->Y || !ix->L) {
@@ -428,22 +431,27 @@ static void brute_ws_free(brute_ws *w) {
   free(w->vec);
 }
 
-/* Xc / xn: BLK_X rows, or all nx when two-way (the column rescreen needs every row). */
-static int brute_ws_alloc(brute_ws *w, const sm_knn *ix, int32_t nx, int cap, int capc,
-                          int two_way) {
+/* Xc / xn / sn for nr query rows (BLK_X one-way; all nx two-way, where the column rescreen
+ * needs every row; 0: a helper thread of a two-way query, which reads the first
+ * workspace's), and the column lists when two_way. */
+static int brute_ws_alloc(brute_ws *w, const sm_knn *ix, int32_t nx, int32_t nr, int cap,
+                          int capc, int two_way) {
   memset(w, 0, sizeof *w);
-  int32_t ny = ix->ny, nr = two_way ? nx : BLK_X, nmax = nx > ny ? nx : ny;
+  int32_t ny = ix->ny, nmax = nx > ny ? nx : ny;
   int nbuf = cap > RESCREEN_MAX ? cap : RESCREEN_MAX;
   if (capc > nbuf) nbuf = capc;
-  w->Xc = malloc((size_t)nr * (ix->ds + 1) * sizeof(float));
-  w->xn = malloc((size_t)nr * sizeof(double));
-  w->sn = malloc((size_t)nr * sizeof(double));
+  if (nr > 0) {
+    w->Xc = malloc((size_t)nr * (ix->ds + 1) * sizeof(float));
+    w->xn = malloc((size_t)nr * sizeof(double));
+    w->sn = malloc((size_t)nr * sizeof(double));
+    if (!w->Xc || !w->xn || !w->sn) return -1;
+  }
   if (ix->L && !(w->Xd = malloc((size_t)BLK_X * (ix->d + ix->ds) * sizeof(double)))) return -1;
   w->G = calloc((size_t)BLK_X * BLK_Y, sizeof(float)); /* kept zero between blocks */
   w->dv = malloc((size_t)nbuf * sizeof(double));
   w->iv = malloc((size_t)nbuf * sizeof(int32_t));
   w->vec = malloc((size_t)nmax * sizeof(float));
-  if (!w->Xc || !w->xn || !w->sn || !w->G || !w->dv || !w->iv || !w->vec) return -1;
+  if (!w->G || !w->dv || !w->iv || !w->vec) return -1;
   if (lists_alloc(&w->rows, BLK_X, cap)) return -1;
   return two_way ? lists_alloc(&w->cols, ny, capc) : 0;
 }
@@ -671,21 +679,78 @@ static void brute_rows(const sm_knn *ix, brute_ws *w, const float *Xc, const dou
   }
 }
 
+/* ---- threads ------------------------------------------------------------------------ */
+
+enum { KNN_MAX_THREADS = 8, PAR_MIN_WORK = 1 << 20 /* query rows x points */ };
+
+/* Runs fn on jobs[0 .. n-1] (each `size` bytes): n - 1 new threads and the caller; a job
+ * whose thread cannot start runs on the caller afterwards. */
+static void run_jobs(void *(*fn)(void *), void *jobs, size_t size, int n) {
+  pthread_t th[KNN_MAX_THREADS];
+  int started[KNN_MAX_THREADS] = {0};
+  for (int t = 1; t < n; t++) started[t] = !pthread_create(&th[t], NULL, fn, (char *)jobs + t * size);
+  fn(jobs);
+  for (int t = 1; t < n; t++) {
+    if (started[t]) pthread_join(th[t], NULL);
+    else fn((char *)jobs + t * size);
+  }
+}
+
+/* Threads for nx query rows against ix: whole BLK_X blocks each, and only when the work
+ * pays for them. */
+static int query_threads(const sm_knn *ix, int32_t nx) {
+  int32_t nb = (nx + BLK_X - 1) / BLK_X;
+  int t = ix->threads < KNN_MAX_THREADS ? ix->threads : KNN_MAX_THREADS;
+  if ((int64_t)nx * ix->ny < PAR_MIN_WORK) return 1;
+  return t < nb ? t : nb;
+}
+
+/* Query rows of part t of n: whole blocks, in order. */
+static void part_rows(int32_t nx, int t, int n, int32_t *i0, int32_t *i1) {
+  int32_t nb = (nx + BLK_X - 1) / BLK_X;
+  *i0 = (int32_t)((int64_t)nb * t / n) * BLK_X;
+  *i1 = (int32_t)((int64_t)nb * (t + 1) / n) * BLK_X;
+  if (*i1 > nx) *i1 = nx;
+}
+
+typedef struct row_job {
+  const sm_knn *ix;
+  const double *X;
+  int32_t nx, i0, i1;
+  int K, cap;
+  int32_t *idx;
+  double *dist2;
+  int rc;
+} row_job;
+
+/* One-way: rows i0 .. i1 - 1, screened block by block in the job's own workspace. */
+static void *row_job_run(void *arg) {
+  row_job *j = arg;
+  const sm_knn *ix = j->ix;
+  brute_ws w;
+  j->rc = brute_ws_alloc(&w, ix, j->nx, BLK_X, j->cap, 0, 0);
+  for (int32_t i0 = j->i0; !j->rc && i0 < j->i1; i0 += BLK_X) {
+    int bx = j->i1 - i0 < BLK_X ? j->i1 - i0 : BLK_X;
+    screen_rows(ix, j->X + (size_t)i0 * ix->d, bx, w.Xc, w.xn, w.sn, w.Xd);
+    brute_rows(ix, &w, w.Xc, w.xn, w.sn, j->X, i0, bx, j->K, j->cap, 0, j->idx, j->dist2);
+  }
+  brute_ws_free(&w);
+  return NULL;
+}
+
 static int query_brute(const sm_knn *ix, const double *X, int32_t nx, int K, int32_t *idx,
                        double *dist2, sm_error *err) {
   /* The (K + SCREEN_EXTRA)-th candidate certifies the K-th. */
   int cap = K + SCREEN_EXTRA < ix->ny ? K + SCREEN_EXTRA : ix->ny;
-  brute_ws w;
-  if (brute_ws_alloc(&w, ix, nx, cap, 0, 0)) {
-    brute_ws_free(&w);
-    return sm_error_set(err, SM_ENOMEM, "knn: brute-force workspace (K=%d, d=%d)", K, ix->d);
+  int n = query_threads(ix, nx), rc = 0;
+  row_job jobs[KNN_MAX_THREADS];
+  for (int t = 0; t < n; t++) {
+    jobs[t] = (row_job){ix, X, nx, 0, 0, K, cap, idx, dist2, 0};
+    part_rows(nx, t, n, &jobs[t].i0, &jobs[t].i1);
   }
-  for (int32_t i0 = 0; i0 < nx; i0 += BLK_X) {
-    int bx = nx - i0 < BLK_X ? nx - i0 : BLK_X;
-    screen_rows(ix, X + (size_t)i0 * ix->d, bx, w.Xc, w.xn, w.sn, w.Xd);
-    brute_rows(ix, &w, w.Xc, w.xn, w.sn, X, i0, bx, K, cap, 0, idx, dist2);
-  }
-  brute_ws_free(&w);
+  run_jobs(row_job_run, jobs, sizeof *jobs, n);
+  for (int t = 0; t < n; t++) rc |= jobs[t].rc;
+  if (rc) return sm_error_set(err, SM_ENOMEM, "knn: brute-force workspace (K=%d, d=%d)", K, ix->d);
   return 0;
 }
 
@@ -705,43 +770,110 @@ static void fill_col(const void *vctx, float *vec) {
   for (int32_t i = 0; i < c->nx; i++) vec[i] += (float)c->xn[i];
 }
 
+/* a[q] := the cap smallest of a[q] and b[q] for q < n, a's entries first among equals: a
+ * holds the earlier query rows, so this is the list one pass over all rows would keep. */
+static void merge_lists(screen_lists *a, const screen_lists *b, int32_t n, int cap, float *tv,
+                        int32_t *ti) {
+  for (int32_t q = 0; q < n; q++) {
+    float *la = a->lv + (size_t)q * cap;
+    int32_t *ia = a->li + (size_t)q * cap;
+    const float *lb = b->lv + (size_t)q * cap;
+    const int32_t *ib = b->li + (size_t)q * cap;
+    int na = a->cnt[q], nb = b->cnt[q], pa = 0, pb = 0, m = 0;
+    while (m < cap && (pa < na || pb < nb)) {
+      int take_a = pb == nb || (pa < na && la[pa] <= lb[pb]);
+      tv[m] = take_a ? la[pa] : lb[pb];
+      ti[m++] = take_a ? ia[pa++] : ib[pb++];
+    }
+    memcpy(la, tv, (size_t)m * sizeof *tv);
+    memcpy(ia, ti, (size_t)m * sizeof *ti);
+    a->cnt[q] = m;
+  }
+}
+
+/* Two-way: rows i0 .. i1 - 1 into the job's row results and its own column lists (phase
+ * 0), then (phase 1) the exact nearest query rows of Y points j0 .. j1 - 1 from the merged
+ * lists of ws0. */
+typedef struct both_job {
+  const sm_knn *ix;
+  const double *X;
+  brute_ws *w, *w0;
+  int32_t nx, i0, i1, j0, j1;
+  int K, cap, capc, phase;
+  double delta;
+  int32_t *idx, *idx_yx;
+  double *dist2, *dist_yx;
+} both_job;
+
+static void *both_job_run(void *arg) {
+  both_job *j = arg;
+  const sm_knn *ix = j->ix;
+  brute_ws *w0 = j->w0;
+  int ds = ix->ds, d = ix->d;
+  if (j->phase == 0) {
+    for (int32_t i0 = j->i0; i0 < j->i1; i0 += BLK_X) {
+      int bx = j->i1 - i0 < BLK_X ? j->i1 - i0 : BLK_X;
+      brute_rows(ix, j->w, w0->Xc + (size_t)i0 * (ds + 1), w0->xn + i0, w0->sn + i0, j->X, i0,
+                 bx, j->K, j->cap, j->capc, j->idx, j->dist2);
+    }
+    return NULL;
+  }
+  for (int32_t c = j->j0; c < j->j1; c++) {
+    col_fill f = {ix, w0->Xc, w0->xn, j->nx, c};
+    finish_list(j->w, j->X, j->nx, d, ix->Y + (size_t)c * d, w0->cols.lv + (size_t)c * j->capc,
+                w0->cols.li + (size_t)c * j->capc, j->K, j->capc, j->delta, fill_col, &f,
+                j->dist_yx + (size_t)c * j->K, j->idx_yx + (size_t)c * j->K);
+  }
+  return NULL;
+}
+
+/* Workspaces of a two-way query: ws[0] holds every query row's float row; the others
+ * read it and keep their own GEMM block, row lists and column lists. */
+static int both_ws_alloc(brute_ws *ws, int n, const sm_knn *ix, int32_t nx, int cap,
+                         int capc) {
+  int rc = brute_ws_alloc(&ws[0], ix, nx, nx, cap, capc, 1);
+  for (int t = 1; t < n; t++)
+    if (brute_ws_alloc(&ws[t], ix, nx, 0, cap, capc, 1)) rc = -1;
+  return rc;
+}
+
 /* Both directions from one pass; 1 (nothing written) when some query row cannot be
  * screened in float (the caller then runs two plain queries). */
 static int query_both_brute(const sm_knn *ix, const double *X, int32_t nx, int K,
                             int32_t *idx, double *dist2, int32_t *idx_yx, double *dist_yx,
                             sm_error *err) {
-  int d = ix->d, ds = ix->ds;
+  int d = ix->d, ds = ix->ds, n = query_threads(ix, nx);
   int cap = K + SCREEN_EXTRA < ix->ny ? K + SCREEN_EXTRA : ix->ny;
   int capc = K + SCREEN_EXTRA < nx ? K + SCREEN_EXTRA : nx;
-  brute_ws w;
-  if (brute_ws_alloc(&w, ix, nx, cap, capc, 1)) {
-    brute_ws_free(&w);
-    return sm_error_set(err, SM_ENOMEM, "knn: two-way workspace (K=%d, d=%d)", K, d);
-  }
-  if (screen_rows(ix, X, nx, w.Xc, w.xn, w.sn, w.Xd)) {
-    brute_ws_free(&w);
-    return 1;
+  brute_ws ws[KNN_MAX_THREADS];
+  int rc = both_ws_alloc(ws, n, ix, nx, cap, capc);
+  if (!rc && screen_rows(ix, X, nx, ws[0].Xc, ws[0].xn, ws[0].sn, ws[0].Xd)) rc = 1;
+  if (rc) {
+    for (int t = 0; t < n; t++) brute_ws_free(&ws[t]);
+    return rc == 1 ? 1 : sm_error_set(err, SM_ENOMEM, "knn: two-way workspace (K=%d, d=%d)", K, d);
   }
   double xmax2 = 0, smax = 0;
   for (int32_t i = 0; i < nx; i++) {
-    xmax2 = w.xn[i] > xmax2 ? w.xn[i] : xmax2;
-    smax = w.sn[i] > smax ? w.sn[i] : smax;
-  }
-  for (int32_t i0 = 0; i0 < nx; i0 += BLK_X) {
-    int bx = nx - i0 < BLK_X ? nx - i0 : BLK_X;
-    brute_rows(ix, &w, w.Xc + (size_t)i0 * (ds + 1), w.xn + i0, w.sn + i0, X, i0, bx, K, cap,
-               capc, idx, dist2);
+    xmax2 = ws[0].xn[i] > xmax2 ? ws[0].xn[i] : xmax2;
+    smax = ws[0].sn[i] > smax ? ws[0].sn[i] : smax;
   }
   /* A column value also rounds xn to float and adds: two more units in the bound, and
    * (factored) the added xn itself. */
   double delta = screen_delta(ds + 2, smax, ix->sy + (ix->L ? xmax2 : 0));
-  for (int32_t j = 0; j < ix->ny; j++) {
-    col_fill c = {ix, w.Xc, w.xn, nx, j};
-    finish_list(&w, X, nx, d, ix->Y + (size_t)j * d, w.cols.lv + (size_t)j * capc,
-                w.cols.li + (size_t)j * capc, K, capc, delta, fill_col, &c,
-                dist_yx + (size_t)j * K, idx_yx + (size_t)j * K);
+  both_job jobs[KNN_MAX_THREADS];
+  for (int t = 0; t < n; t++) {
+    jobs[t] = (both_job){ix, X, &ws[t], &ws[0], nx, 0, 0, 0, 0, K, cap, capc, 0, delta,
+                         idx, idx_yx, dist2, dist_yx};
+    part_rows(nx, t, n, &jobs[t].i0, &jobs[t].i1);
+    jobs[t].j0 = (int32_t)((int64_t)ix->ny * t / n);
+    jobs[t].j1 = (int32_t)((int64_t)ix->ny * (t + 1) / n);
   }
-  brute_ws_free(&w);
+  run_jobs(both_job_run, jobs, sizeof *jobs, n);
+  for (int t = 1; t < n; t++)
+    merge_lists(&ws[0].cols, &ws[t].cols, ix->ny, capc, ws[0].vec, ws[0].iv);
+  for (int t = 0; t < n; t++) jobs[t].phase = 1;
+  run_jobs(both_job_run, jobs, sizeof *jobs, n);
+  for (int t = 0; t < n; t++) brute_ws_free(&ws[t]);
   return 0;
 }
 

@@ -48,6 +48,9 @@ typedef struct sm_knn_opts {
                      * OpenMP workers spin after each search and starved the next BLAS
                      * calls (ZoomOut's fit GEMMs ran 5x slower with 2) */
   int leaf_size;    /* kd-tree leaf size; 0 = 10 */
+  int query_threads; /* brute force: each query's rows are split over this many threads
+                      * (whole blocks, only for >= 2^20 row x point pairs; at most 8); 0 =
+                      * 1. The answers do not depend on it. */
 } sm_knn_opts;
 
 typedef struct sm_knn sm_knn;
@@ -65,7 +68,7 @@ int sm_knn_build(const double *Y, int32_t ny, int d, const sm_knn_opts *o, sm_kn
  * d. Pays when dr is well below d: ZoomOut's bijective embeddings are [C u, u]-shaped,
  * twice the dimensions of their coordinates. Errors as sm_knn_build. */
 int sm_knn_build_factored(const double *U, int32_t ny, int dr, const double *L, int d,
-                          sm_knn **out, sm_error *err);
+                          const sm_knn_opts *o, sm_knn **out, sm_error *err);
 int sm_knn_query(const sm_knn *ix, const double *X, int32_t nx, int K, int32_t *idx,
                  double *dist2, sm_error *err);
 /* Both directions at once: idx / dist2 (nx x K) as sm_knn_query(ix, X, ...), and idx_yx /

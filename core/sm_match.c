@@ -85,6 +85,14 @@ static void shape_fps(const sm_shape *s, int32_t ns, const int32_t **S, const do
   pthread_mutex_unlock(&c->lock);
 }
 
+/* Nearest-neighbour options of a match's point-map extractions: o->threads query threads. */
+static sm_knn_opts match_knn(const sm_match_opts *o) {
+  sm_knn_opts ko;
+  sm_knn_opts_default(&ko);
+  ko.query_threads = o->threads;
+  return ko;
+}
+
 /* The coarse-map operators of s from its own descriptors, cached (NULL: build per call). */
 static const sm_coarse_prep *shape_coarse(const sm_shape *s, const sm_coarse_opts *co) {
   struct sm_shape_cache *c = s->cache;
@@ -345,14 +353,15 @@ static int soft_fmap(const sm_basis *bx, const sm_basis *by, const sm_plan *plan
  * homer A -> B (elastic refinement after it): 0.025 mean geodesic error, against 0.13-0.18
  * when the plan was first turned into a hard map (row argmax or greedy bijective
  * extraction), whose scattered mistakes ZoomOut could not undo. */
-static int soft_pullback_map(const sm_shape *x, const sm_shape *y, const sm_plan *plan, int k,
-                             int32_t *T, sm_error *err) {
+static int soft_pullback_map(const sm_shape *x, const sm_shape *y, const sm_match_opts *o,
+                             const sm_plan *plan, int k, int32_t *T, sm_error *err) {
   double *C = malloc((size_t)k * k * sizeof *C);
   if (!C) return sm_error_set(err, SM_ENOMEM, "init: out of memory");
   int rc = soft_fmap(x->lb, y->lb, plan, k, C, err);
   sm_fmap_pair pair = {x->lb, y->lb, k, k, 1.0};
   const double *Cs[1] = {C};
-  if (!rc) rc = sm_fmap_to_p2p(&pair, 1, Cs, T, NULL, NULL, err);
+  sm_knn_opts ko = match_knn(o);
+  if (!rc) rc = sm_fmap_to_p2p(&pair, 1, Cs, T, NULL, &ko, err);
   free(C);
   return rc;
 }
@@ -370,6 +379,7 @@ static int embed_sinkhorn(const sm_basis *bx, const sm_basis *by, int k, const d
     sm_sinkhorn_opts so;
     sm_sinkhorn_opts_default(&so);
     so.k = o->sinkhorn_k;
+    so.threads = o->threads;
     so.cancel = o->cancel;
     so.cancel_ud = o->cancel_ud;
     rc = sm_sinkhorn(Ex, nx, Ey, ny, k, bx->mass, by->mass, &so, plan, NULL, err);
@@ -388,11 +398,12 @@ static int initial_map(const sm_shape *x, const sm_shape *y, const sm_match_opts
   if (o->init == SM_INIT_NN) {
     sm_fmap_pair p = {x->lb, y->lb, k, k, 1.0};
     const double *Cs[1] = {C};
-    return sm_fmap_to_p2p(&p, 1, Cs, T, NULL, NULL, err);
+    sm_knn_opts ko = match_knn(o);
+    return sm_fmap_to_p2p(&p, 1, Cs, T, NULL, &ko, err);
   }
   sm_plan *plan = NULL;
   int rc = embed_sinkhorn(x->lb, y->lb, k, C, o, &plan, err);
-  if (!rc) rc = soft_pullback_map(x, y, plan, k, T, err);
+  if (!rc) rc = soft_pullback_map(x, y, o, plan, k, T, err);
   sm_plan_destroy(plan);
   return rc;
 }
@@ -419,7 +430,8 @@ static int sinkhorn_levels(const sm_shape *x, const sm_shape *y, const sm_match_
   }
   sm_fmap_pair pair = {bx, by, k, k, 1.0};
   const double *Cs[1] = {C};
-  if (!rc) rc = sm_fmap_to_p2p(&pair, 1, Cs, T, NULL, NULL, err);
+  sm_knn_opts ko = match_knn(o);
+  if (!rc) rc = sm_fmap_to_p2p(&pair, 1, Cs, T, NULL, &ko, err);
   free(C);
   return rc;
 }
@@ -442,6 +454,7 @@ static int refine(const sm_shape *x, const sm_shape *y, const sm_match_opts *o, 
   zo.pos_x = x->mesh->V;
   zo.pos_y = y->mesh->V;
   zo.bijective = wb;
+  zo.knn = match_knn(o);
   shape_fps(x, zo.nsample_x, &zo.samples_x, &zo.cellw_x);
   shape_fps(y, zo.nsample_y, &zo.samples_y, &zo.cellw_y);
   zo.cancel = o->cancel;
@@ -773,6 +786,7 @@ static void *run_hypotheses(void *arg) {
   for (int i; (i = atomic_fetch_add(&q->next, 1)) < q->nh;) {
     sm_match_opts ho = *q->o;
     ho.extremities = SM_EXT_OFF;
+    ho.threads = 1; /* the hypotheses themselves use the threads */
     ho.bijective = 0; /* the kept map gets it, once */
     ho.landmarks = q->h[i].pairs;
     ho.nlandmarks = q->h[i].m;

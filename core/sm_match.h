@@ -118,8 +118,10 @@ typedef struct sm_match_opts {
                        ext_below (default), 2 always */
   double ext_below; /* default SM_MATCH_EXT_BELOW */
   int ext_hypotheses; /* tip assignments refined, at most SM_MATCH_EXT_MAX_H (default 4) */
-  int threads;      /* tip hypotheses matched at once (default 1: a server's workers
-                       already fill the cores; the local CLI uses 2) */
+  int threads;      /* threads of one match (default 1: a server's workers already
+                       fill the cores; the local CLI uses 2): tip hypotheses matched at
+                       once, else the refinement's nearest-neighbour queries split over
+                       them (sm_knn_opts.query_threads). The map does not depend on it. */
   const int32_t *landmarks; /* nlandmarks pairs (x, y), cleaned indices; may be NULL */
   int nlandmarks;
   const int32_t *init_map;  /* optional initial map X -> Y (cleaned indices): skips init */

@@ -150,6 +150,7 @@ static int add_knn_pairs(const double *F, int32_t nx, const double *G, int32_t n
   sm_knn_opts_default(&ko);
   ko.strategy = o->knn;
   ko.threads = o->threads;
+  ko.query_threads = o->threads;
   int32_t *ri = malloc(sizeof(int32_t) * (size_t)nx * kx);
   int32_t *ci = malloc(sizeof(int32_t) * (size_t)ny * ky);
   double *rd = malloc(sizeof(double) * (size_t)nx * kx);

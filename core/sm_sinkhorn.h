@@ -88,8 +88,9 @@ typedef struct sm_sinkhorn_opts {
                        d < SM_KNN_CROSSOVER_D) */
   int threads;      /* neighbour search threads (default 2): the kd-tree search's, or
                        the two brute-force directions run concurrently when their K
-                       differ (with one K, brute force does both in one pass, on one
-                       thread: sm_knn_query_both) */
+                       differ (with one K, brute force does both in one pass, its query
+                       rows split over the threads: sm_knn_query_both). sm_match passes
+                       its own (1 in the daemon) */
   int log_domain;   /* 1: plain log-domain iterations, no kernel scaling (the slow
                        reference path; for tests and measurements) */
   int (*cancel)(void *ud); /* nonzero = stop (SM_ECANCELED); may be NULL */

@@ -59,11 +59,15 @@ static int compare_knn(const double *Y, int ny, const double *X, int nx, int d, 
   return bad;
 }
 
+/* Brute-force query threads of run_knn and run_knn_both (test_knn_threads). */
+static int g_query_threads = 1;
+
 static int run_knn(const double *Y, int ny, const double *X, int nx, int d, int K, int strat,
                    int exact_idx) {
   sm_knn_opts o;
   sm_knn_opts_default(&o);
   o.strategy = strat;
+  o.query_threads = g_query_threads;
   sm_knn *ix = NULL;
   sm_error err;
   int32_t *idx = malloc((size_t)nx * K * sizeof *idx);
@@ -89,6 +93,7 @@ static int run_knn_both(const double *Y, int ny, const double *X, int nx, int d,
   sm_knn_opts o;
   sm_knn_opts_default(&o);
   o.strategy = strat;
+  o.query_threads = g_query_threads;
   sm_knn *ix = NULL;
   sm_error err;
   int32_t *idx = malloc((size_t)nx * K * sizeof *idx), *iyx = malloc((size_t)ny * K * sizeof *iyx);
@@ -217,7 +222,10 @@ static void run_knn_factored(int ny, int dr, int d, int nx, int K, int dyadic, d
   double *dist = malloc((size_t)nx * K * sizeof *dist), *dyx = malloc((size_t)ny * K * sizeof *dyx);
   sm_knn *ix = NULL;
   sm_error err;
-  int rc = sm_knn_build_factored(U, ny, dr, L, d, &ix, &err);
+  sm_knn_opts ko;
+  sm_knn_opts_default(&ko);
+  ko.query_threads = g_query_threads;
+  int rc = sm_knn_build_factored(U, ny, dr, L, d, &ko, &ix, &err);
   if (!rc) rc = sm_knn_query(ix, X, nx, K, idx, dist, &err);
   if (rc) fprintf(stderr, "knn factored: %s\n", err.msg);
   REQUIRE(rc == 0);
@@ -246,9 +254,34 @@ static void test_knn_factored(void) {
   double U[4] = {0, 1, 2, 3}, L[2] = {1, 0};
   sm_knn *ix = NULL;
   sm_error err;
-  CHECK(sm_knn_build_factored(U, 4, 1, L, 0, &ix, &err) == SM_EINVAL && !ix);
+  CHECK(sm_knn_build_factored(U, 4, 1, L, 0, NULL, &ix, &err) == SM_EINVAL && !ix);
   U[2] = NAN;
-  CHECK(sm_knn_build_factored(U, 4, 1, L, 2, &ix, &err) == SM_ENONFINITE && !ix);
+  CHECK(sm_knn_build_factored(U, 4, 1, L, 2, NULL, &ix, &err) == SM_ENONFINITE && !ix);
+}
+
+/* Query rows split over threads (whole blocks of 256 rows; >= 2^20 pairs): the same
+ * exact answers, ties included (the merged column lists must keep the lowest row). */
+static void test_knn_threads(void) {
+  uint64_t s = 31337;
+  for (int th = 2; th <= 3; th++) {
+    g_query_threads = th;
+    for (int d = 20; d <= 60; d += 40) {
+      int ny = 1900, nx = 1100;
+      double *Y = random_points(ny, d, -1, 1, &s), *X = random_points(nx, d, -1, 1, &s);
+      run_knn(Y, ny, X, nx, d, 3, SM_KNN_BRUTE, 1);
+      run_knn_both(Y, ny, X, nx, d, 1, SM_KNN_BRUTE, 1);
+      run_knn_both(Y, ny, X, nx, d, 5, SM_KNN_BRUTE, 1);
+      for (int64_t i = 0; i < (int64_t)ny * d; i++) Y[i] = floor(3 * Y[i]); /* ties */
+      for (int64_t i = 0; i < (int64_t)nx * d; i++) X[i] = floor(3 * X[i]);
+      run_knn(Y, ny, X, nx, d, 4, SM_KNN_BRUTE, 1);
+      run_knn_both(Y, ny, X, nx, d, 4, SM_KNN_BRUTE, 1);
+      free(Y);
+      free(X);
+    }
+    run_knn_factored(2000, 30, 60, 1300, 1, 0, 1, &s);
+    run_knn_factored(2000, 16, 32, 1300, 3, 1, 1, &s);
+  }
+  g_query_threads = 1;
 }
 
 static void test_knn_errors(void) {
@@ -661,6 +694,7 @@ int main(void) {
   test_knn_cancellation();
   test_knn_scales();
   test_knn_factored();
+  test_knn_threads();
   test_knn_errors();
   test_identity();
   test_p2p_formula();
