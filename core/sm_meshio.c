@@ -759,14 +759,26 @@ static int read_ply_own(const char *name, const char *buf, size_t len, const ply
   return 0;
 }
 
-/* OpenMesh first for binary float32 files with a plain header; our own parser for the
- * rest and when OpenMesh's counts differ from the header's (or OpenMesh fails). */
+/* True when no element claims more items than the body has bytes, as in every complete
+ * binary file whose elements have properties. OpenMesh reads counts into an unsigned int,
+ * and a count past 2^32 fails its header stream, which it then reads forever (found by
+ * fuzz_meshio: "element f 8888888888888960"); such files go to our own reader. */
+static int ply_counts_fit_body(const ply_header *h, size_t len) {
+  for (int i = 0; i < h->nelems; i++)
+    if ((unsigned long long)h->elems[i].count > len - h->body) return 0;
+  return 1;
+}
+
+/* OpenMesh first for binary float32 files with a plain header and believable counts; our
+ * own parser for the rest and when OpenMesh's counts differ from the header's (or OpenMesh
+ * fails). */
 static int read_ply(const char *name, const char *buf, size_t len, const sm_limits *lim,
                     sm_mesh **out, sm_error *err) {
   ply_header h;
   int rc = ply_read_header(name, buf, len, &h, err);
   if (rc) return rc;
-  if (h.format != PLY_ASCII && h.xyz_float32 && h.plain && h.nv > 0) {
+  if (h.format != PLY_ASCII && h.xyz_float32 && h.plain && h.nv > 0 &&
+      ply_counts_fit_body(&h, len)) {
     sm_mesh *m = NULL;
     int64_t npoly = -1;
     if (sm_limits_check(lim, h.nv, h.nf, err) == 0 &&

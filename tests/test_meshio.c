@@ -310,6 +310,40 @@ static void test_ply_list_numbers(void) {
   sm_mesh_destroy(m);
 }
 
+/* A binary PLY whose extra element claims more items than the file has bytes: a count past
+ * 2^32 made OpenMesh's header reader loop forever (fuzz_meshio,
+ * regress/meshio/ply-element-count-past-uint32-hangs-openmesh); our reader refuses the
+ * truncated body, and the same file with a believable count still reads. */
+static void test_ply_huge_element_count(void) {
+  static const float xyz[9] = {0, 0, 0, 1, 0, 0, 0, 1, 0};
+  static const uint8_t face[13] = {3, 0, 0, 0, 0, 1, 0, 0, 0, 2, 0, 0, 0};
+  const char *counts[] = {"8888888888888960", "4294967296", "2"};
+  for (int i = 0; i < 3; i++) {
+    char text[512];
+    int n = snprintf(text, sizeof text,
+                     "ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\n"
+                     "property float y\nproperty float z\nelement face 1\n"
+                     "property list uchar int vertex_indices\nelement extra %s\n"
+                     "property uchar a\nend_header\n",
+                     counts[i]);
+    uint8_t buf[640];
+    memcpy(buf, text, (size_t)n);
+    memcpy(buf + n, xyz, sizeof xyz); /* little-endian host assumed, as in write_ply_binary */
+    memcpy(buf + n + sizeof xyz, face, sizeof face);
+    memset(buf + n + sizeof xyz + sizeof face, 7, 2);
+    write_bytes(tmp("extra.ply"), buf, (size_t)n + sizeof xyz + sizeof face + 2);
+    sm_error e;
+    if (i < 2) {
+      CHECK_MSG(read_rc(tmp("extra.ply"), &e) == SM_EFORMAT && strstr(e.msg, "truncated"),
+                "count %s: %s", counts[i], e.msg);
+    } else {
+      sm_mesh *m = read_ok(tmp("extra.ply"));
+      CHECK(m && m->nv == 3 && m->nf == 1);
+      sm_mesh_destroy(m);
+    }
+  }
+}
+
 static void test_bad_files(void) {
   sm_error e;
   CHECK(read_rc(tmp("does_not_exist.off"), &e) == SM_EIO);
@@ -441,6 +475,7 @@ int main(void) {
   test_nonmanifold_binary_ply();
   test_bad_files();
   test_ply_list_numbers();
+  test_ply_huge_element_count();
   if (!sm_test_data_present()) {
     if (sm_test_finish()) return 1;
     SM_SKIP("shared data absent: %s", SM_DATA_DIR);
