@@ -322,7 +322,8 @@ static void match_args_init(match_args *m) {
   memset(m, 0, sizeof *m);
   sm_shape_opts_default(&m->so);
   sm_match_opts_default(&m->mo);
-  m->mo.threads = 2; /* a local match has the machine to itself: tip hypotheses in pairs */
+  m->mo.threads = 2; /* a local match has the machine to itself: tip hypotheses in pairs,
+                        * the refinement's neighbour queries on two threads */
   sm_client_match_opts_default(&m->co);
   sm_multires_opts_default(&m->ro);
   snprintf(m->multires_json, sizeof m->multires_json, "null");
