@@ -416,6 +416,32 @@ def section_hard(out, md):
             for p in base["pairs"] if p.get("ok")]
     md.append(table(["set", "pair", "error", "confidence", "orientation", "continuity", "cycle",
                      "tips", "time"], prow))
+    section_match_speed(out, md)
+
+
+def section_match_speed(out, md):
+    r = load(out, "match_speed.json")
+    if not r:
+        return
+    md.append("\n**Speed of the default match, bases cached** (`bench/bench_match --defaults "
+              f"-r {r['runs']} --json docs/eval/match_speed.json`; medians of {r['runs']} runs "
+              "in one process, one BLAS thread; load average "
+              f"{r['loadavg_start'].split()[0]} at the start). `1 thread` is how a daemon "
+              "worker runs it, `2 threads` how the CLI does (the refinement's neighbour "
+              "queries split over both cores; the same map). Target: <= 1.0 s for ~5k "
+              "vertices.\n")
+    rows = []
+    for p in r["pairs"]:
+        cf = {c["config"]: c for c in p.get("configs", []) if c.get("ok")}
+        one, two = cf.get("default"), cf.get("default 2 thr")
+        if not one:
+            continue
+        rows.append([p["pair"], f"{p['n_source']} -> {p['n_target']}", one["geo_mean"],
+                     fmt(one["init_s"], 3) + " s", fmt(one["refine_s"], 3) + " s",
+                     fmt(one["match_s"], 3) + " s",
+                     fmt(two["match_s"], 3) + " s" if two else "-"])
+    md.append(table(["pair", "vertices", "error", "init (1 thread)", "refine (1 thread)",
+                     "match, 1 thread", "match, 2 threads"], rows))
 
 
 def write(out, path):
