@@ -23,6 +23,7 @@ openssl req -x509 -newkey rsa:2048 -nodes -days 1 -subj "/CN=localhost" \
   -keyout "$work/key.pem" -out "$work/cert.pem" 2>/dev/null
 cat "$work/cert.pem" "$work/key.pem" > "$work/tls.pem"
 
+: > "$work/daemon.log" # before the daemon opens it: the sed below may run first
 "$build/server/shapematchd" --port 0 --data-dir "$work/data" 2> "$work/daemon.log" &
 pids+=($!)
 for _ in $(seq 100); do

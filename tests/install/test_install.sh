@@ -36,7 +36,10 @@ flags=$(pkg-config --cflags --libs shapematch) || fail "pkg-config shapematch"
 [ "$(pkg-config --modversion shapematch)" = "$("$prefix/bin/shapematch" --version | cut -d' ' -f2)" ] \
   || fail "shapematch.pc version differs from shapematch --version"
 
-# 3. both samples against the installed daemon (the port it announces, --port 0)
+# 3. both samples against the installed daemon (the port it announces, --port 0). The log
+# exists before the daemon starts: the background job opens it in its own process, and the
+# first sed below could otherwise run first and fail (set -e), as it did in a loaded CI run.
+: > "$work/daemon.log"
 "$prefix/bin/shapematchd" --port 0 --data-dir "$work/data" --threads 1 2> "$work/daemon.log" &
 daemon_pid=$!
 port=""
