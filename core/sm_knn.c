@@ -63,6 +63,7 @@
 #endif
 #include <math.h>
 #include <pthread.h>
+#include <stdatomic.h>
 #include <stdlib.h>
 #include <string.h>
 
@@ -637,10 +638,16 @@ __attribute__((target("avx2"))) static void scan_cols_avx2(screen_lists *l, int 
   }
 }
 
+/* Atomic: concurrent first calls (two daemon workers) may both compute it; a plain int
+ * would be a data race (ThreadSanitizer stopped the daemon on one). */
 static int cpu_has_avx2(void) {
-  static int known = -1; /* benign race: every thread computes the same value */
-  if (known < 0) known = __builtin_cpu_supports("avx2") ? 1 : 0;
-  return known;
+  static atomic_int known = -1;
+  int k = atomic_load_explicit(&known, memory_order_relaxed);
+  if (k < 0) {
+    k = __builtin_cpu_supports("avx2") ? 1 : 0;
+    atomic_store_explicit(&known, k, memory_order_relaxed);
+  }
+  return k;
 }
 #endif
 
