@@ -230,6 +230,23 @@ static int build_flann(sm_knn *ix, const sm_knn_opts *o, sm_error *err) {
   return 0;
 }
 
+/* A new index of ny points in d dimensions, screened in ds, with room for the points (Y)
+ * but nothing built; NULL when out of memory. */
+static sm_knn *knn_new(int32_t ny, int d, int ds, const sm_knn_opts *o) {
+  sm_knn *ix = calloc(1, sizeof *ix);
+  if (!ix) return NULL;
+  ix->ny = ny;
+  ix->d = d;
+  ix->ds = ds;
+  ix->threads = o && o->query_threads > 1 ? o->query_threads : 1;
+  ix->Y = malloc((size_t)ny * d * sizeof(double));
+  if (!ix->Y) {
+    free(ix);
+    return NULL;
+  }
+  return ix;
+}
+
 int sm_knn_build(const double *Y, int32_t ny, int d, const sm_knn_opts *o, sm_knn **out,
                  sm_error *err) {
   sm_knn_opts def;
@@ -244,21 +261,12 @@ int sm_knn_build(const double *Y, int32_t ny, int d, const sm_knn_opts *o, sm_kn
     return sm_error_set(err, SM_EINVAL, "knn: unknown strategy %d", o->strategy);
   int rc = check_finite(Y, (int64_t)ny * d, "Y", err);
   if (rc) return rc;
-  sm_knn *ix = calloc(1, sizeof *ix);
-  if (!ix) return sm_error_set(err, SM_ENOMEM, "knn: index");
-  ix->ny = ny;
-  ix->d = d;
-  ix->ds = d;
-  ix->threads = o->query_threads > 1 ? o->query_threads : 1;
+  sm_knn *ix = knn_new(ny, d, d, o);
+  if (!ix) return sm_error_set(err, SM_ENOMEM, "knn: copy of %d x %d points", ny, d);
   int cross = o->crossover_d > 0 ? o->crossover_d : SM_KNN_CROSSOVER_D;
   ix->strategy = o->strategy != SM_KNN_AUTO ? o->strategy
                  : d < cross                 ? SM_KNN_KDTREE
                                              : SM_KNN_BRUTE;
-  ix->Y = malloc((size_t)ny * d * sizeof(double));
-  if (!ix->Y) {
-    sm_knn_destroy(ix);
-    return sm_error_set(err, SM_ENOMEM, "knn: copy of %d x %d points", ny, d);
-  }
   memcpy(ix->Y, Y, (size_t)ny * d * sizeof(double));
   rc = ix->strategy == SM_KNN_BRUTE ? build_brute(ix, NULL, err) : build_flann(ix, o, err);
   if (rc) {
@@ -278,16 +286,10 @@ int sm_knn_build_factored(const double *U, int32_t ny, int dr, const double *L, 
   int rc = check_finite(U, (int64_t)ny * dr, "U", err);
   if (!rc) rc = check_finite(L, (int64_t)d * dr, "L", err);
   if (rc) return rc;
-  sm_knn *ix = calloc(1, sizeof *ix);
-  if (!ix) return sm_error_set(err, SM_ENOMEM, "knn: index");
-  ix->strategy = SM_KNN_BRUTE;
-  ix->ny = ny;
-  ix->d = d;
-  ix->ds = dr;
-  ix->threads = o && o->query_threads > 1 ? o->query_threads : 1;
-  ix->Y = malloc((size_t)ny * d * sizeof(double));
-  ix->L = malloc((size_t)d * dr * sizeof(double));
-  if (!ix->Y || !ix->L) {
+  sm_knn *ix = knn_new(ny, d, dr, o);
+  if (ix) ix->strategy = SM_KNN_BRUTE;
+  if (ix) ix->L = malloc((size_t)d * dr * sizeof(double));
+  if (!ix || !ix->L) {
     sm_knn_destroy(ix);
     return sm_error_set(err, SM_ENOMEM, "knn: factored index of %d x %d", ny, d);
   }
