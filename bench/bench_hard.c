@@ -18,12 +18,15 @@
  * Options of the match (default: the product's defaults): --multi-start, --global 1 (the
  * opt-in global search of sm_global.h; 2 adds orderings), --k1 K, --extremities 0|1|2 (the
  * tip search: off, when doubtful, always; "tips h/n" = winning hypothesis / refined); --analyze prints every start of the global search
- * with its true error instead of matching (design data, never used by the product).
+ * with its true error instead of matching; --trace-tips prints every map the tip search
+ * judges, its score and its true error (both design data, never used by the product).
  *
  * Usage: bench_hard [--sets a,b] [--cache DIR] [--threads N] [--json OUT] [--limit N]
- *                   [--global 0|1|2] [--multi-start] [--k1 K] [--analyze]
+ *                   [--global 0|1|2] [--multi-start] [--k1 K] [--analyze] [--trace-tips]
  *                   [--extremities 0|1|2] [--ext-below C] [--ext-hypotheses H]
  *                   [--bijective W] (the last stage's bijective ZoomOut weight, 0 = off)
+ *                   [--anchor W] [--judge-anchor W] (landmark anchoring of the kept tip
+ *                   map and of the hypotheses while judged; 0 = off)
  * Exit: 0, 1 on a failure, 77 when ../shared/data is absent.
  */
 #define _POSIX_C_SOURCE 200809L
@@ -65,8 +68,9 @@ typedef struct hard_pair {
 
 typedef struct bench_cfg {
   const char *cache;
-  int global, multi_start, k1, analyze, extremities, ext_h;
+  int global, multi_start, k1, analyze, trace_tips, extremities, ext_h;
   double ext_below, bijective; /* bijective < 0: the product's default */
+  double anchor, judge_anchor;  /* < 0: the product's default */
 } bench_cfg;
 
 /* ---- shapes, with their bases cached on disk ----------------------------------------- */
@@ -160,6 +164,8 @@ static void match_options(const bench_cfg *c, sm_match_opts *o) {
   o->multi_start = c->multi_start;
   if (c->k1 > 0) o->k1 = c->k1;
   if (c->bijective >= 0) o->bijective = c->bijective;
+  if (c->anchor >= 0) o->anchor = c->anchor;
+  if (c->judge_anchor >= 0) o->judge_anchor = c->judge_anchor;
   o->want_yx = 1;
 }
 
@@ -218,6 +224,24 @@ static void analyze(const hard_pair *p, const bench_raw_pair *L, const sm_shape 
   sm_global_free(h, nh);
 }
 
+/* --trace-tips: every map the tip search judges (h = 0: the descriptor start's), its
+ * score and true error (design data for the search; never used by the product). */
+typedef struct tip_trace {
+  const hard_pair *p;
+  const bench_raw_pair *L;
+  const sm_shape *sx, *sy;
+} tip_trace;
+
+static void trace_tip(void *ud, int h, const sm_match_result *r, double score) {
+  const tip_trace *t = ud;
+  sm_error err = {0};
+  double e = map_error(t->L, t->sx, t->sy, r->T, &err);
+  printf("TIP %s %s %d err %.4f score %.4f cont %.4f orient %+.4f turns %.4f distort %.4f "
+         "cycle %.4f conf %.4f\n", t->p->set, t->p->name, h, e, score, r->continuity,
+         r->orientation, r->turns, r->distortion, r->cycle, r->confidence);
+  fflush(stdout);
+}
+
 static int run_pair(const bench_cfg *c, hard_pair *p, sm_error *err) {
   bench_raw_pair L = {0};
   sm_shape *sx = NULL, *sy = NULL;
@@ -236,6 +260,11 @@ static int run_pair(const bench_cfg *c, hard_pair *p, sm_error *err) {
   }
   sm_match_opts o;
   match_options(c, &o);
+  tip_trace tt = {p, &L, sx, sy};
+  if (c->trace_tips) {
+    o.on_tip_map = trace_tip;
+    o.on_tip_map_ud = &tt;
+  }
   double t0 = sm_now();
   if (!rc) rc = sm_match(sx, sy, &o, &r, err);
   p->t_total = sm_now() - t0;
@@ -430,13 +459,14 @@ static void write_json(const char *path, const bench_cfg *c, const hard_pair *P,
 static void usage(void) {
   fprintf(stderr, "usage: bench_hard [--sets gorilla,manwoman,within,classic] [--cache DIR] "
                   "[--threads N] [--json OUT] [--limit N] [--global 0|1] [--multi-start] "
-                  "[--k1 K] [--analyze] [--extremities 0|1|2] [--ext-below C] "
-                  "[--ext-hypotheses H] [--bijective W]\n");
+                  "[--k1 K] [--analyze] [--trace-tips] [--extremities 0|1|2] [--ext-below C] "
+                  "[--ext-hypotheses H] [--bijective W] [--anchor W] [--judge-anchor W]\n");
 }
 
 int main(int argc, char **argv) {
   bench_cfg cfg = {.cache = "bench-cache", .global = -1, .extremities = -1,
-                   .ext_below = -1, .bijective = -1};
+                   .ext_below = -1, .bijective = -1,
+                   .anchor = -1, .judge_anchor = -1};
   const char *sets_arg = NULL, *json = NULL;
   int threads = 2, limit = 0;
   for (int i = 1; i < argc; i++) {
@@ -453,8 +483,11 @@ int main(int argc, char **argv) {
     else if (!strcmp(a, "--ext-below") && v) cfg.ext_below = atof(argv[++i]);
     else if (!strcmp(a, "--ext-hypotheses") && v) cfg.ext_h = atoi(argv[++i]);
     else if (!strcmp(a, "--bijective") && v) cfg.bijective = atof(argv[++i]);
+    else if (!strcmp(a, "--anchor") && v) cfg.anchor = atof(argv[++i]);
+    else if (!strcmp(a, "--judge-anchor") && v) cfg.judge_anchor = atof(argv[++i]);
     else if (!strcmp(a, "--multi-start")) cfg.multi_start = 1;
     else if (!strcmp(a, "--analyze")) cfg.analyze = 1;
+    else if (!strcmp(a, "--trace-tips")) cfg.trace_tips = 1;
     else {
       usage();
       return 2;

@@ -116,7 +116,9 @@ static int ext_collect(ext_work *w, sm_ext_set *s, sm_error *err) {
   double mean = 0;
   for (int32_t v = 0; v < nv; v++) mean += w->agd[v];
   mean = mean > 0 ? mean / nv : 1;
-  for (int32_t i = 0; !rc && i < nc && s->n < SM_EXT_MAX; i++) {
+  /* Candidates come by decreasing AGD: the first below SM_EXT_MIN_AGD ends the list. */
+  for (int32_t i = 0; !rc && i < nc && s->n < SM_EXT_MAX && cand[i].agd >= SM_EXT_MIN_AGD * mean;
+       i++) {
     int tip;
     rc = ext_is_tip(w, s->n, cand[i].v, &tip, err);
     if (rc || !tip) continue;

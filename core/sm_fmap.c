@@ -383,6 +383,9 @@ static int check_zoomout(const sm_fmap_pair *pairs, int np, const sm_zoomout_opt
     return sm_error_set(err, SM_EINVAL, "zoomout: bad Y samples");
   if (!(o->bijective >= 0) || !isfinite(o->bijective))
     return sm_error_set(err, SM_EINVAL, "zoomout: bijective weight %g", o->bijective);
+  if (o->nfeat < 0 || (o->nfeat > 0 && (!o->feat_x || !o->feat_y || o->bijective > 0)))
+    return sm_error_set(err, SM_EINVAL, "zoomout: %d fixed features (need both sides, and "
+                        "not with the bijective variant)", o->nfeat);
   return check_map(T0, pairs[0].x->n, pairs[0].y->n, err);
 }
 
@@ -516,6 +519,7 @@ static int zsetup(zctx *z, const sm_fmap_pair *pairs, const int32_t *T0, sm_erro
     z->Dmax += z->sqw_y ? 2 * z->p[p].K : z->p[p].K;
     if (z->p[p].K > Kmax) Kmax = z->p[p].K;
   }
+  z->Dmax += z->o->nfeat;
   int32_t zrows = z->nfit > z->nfit_y ? z->nfit : z->nfit_y;
   z->Tfit = malloc((size_t)z->nfit * sizeof(int32_t));
   z->EX = malloc((size_t)z->nx * z->Dmax * sizeof(double));
@@ -574,6 +578,21 @@ static void zfactor(zctx *z, const zpair *q, const double *UY, int32_t nc, int D
   }
 }
 
+/* The fixed features in the last nfeat columns of both embeddings (never factored: they
+ * exclude the bijective variant). */
+static void zembed_features(zctx *z, int32_t nq, int full_q, int32_t nc, int full_c, int D) {
+  int nf = z->o->nfeat, off = D - nf;
+  double w = z->o->feat_w;
+  for (int32_t r = 0; r < nq; r++) {
+    const double *f = z->o->feat_x + (size_t)(full_q || !z->fit ? r : z->fit[r]) * nf;
+    for (int c = 0; c < nf; c++) z->EX[(size_t)r * D + off + c] = w * f[c];
+  }
+  for (int32_t r = 0; r < nc; r++) {
+    const double *f = z->o->feat_y + (size_t)(full_c || !z->cand ? r : z->cand[r]) * nf;
+    for (int c = 0; c < nf; c++) z->EY[(size_t)r * D + off + c] = w * f[c];
+  }
+}
+
 /* Embeds the queries (X samples, or all X when full_q) and the candidates (Y samples, or
  * all Y when full_c): a_i = u^X_i against b_j = Cw u^Y_j; once a Y -> X map exists
  * (bijective), [a_i, wb Dw a_i] against [b_j, wb u^Y_j], the candidates factored
@@ -602,6 +621,7 @@ static void zembed(zctx *z, int full_q, int full_c, int D) {
     off += 2 * q->k;
     roff += q->k;
   }
+  zembed_features(z, nq, full_q, nc, full_c, D);
 }
 
 /* Bijective: the Y -> X map on the Y fit set from the last assignment's Y -> query-row
@@ -625,6 +645,7 @@ static int ziterate(zctx *z, int t, int32_t *T, sm_error *err) {
     D += z->have_s ? 2 * z->p[p].k : z->p[p].k;
     rc = zfmap(z, &z->p[p], err);
   }
+  D += z->o->nfeat;
   if (rc) return rc;
   double t1 = sm_now();
   zembed(z, last, full_c, D);

@@ -115,6 +115,13 @@ typedef struct sm_zoomout_opts {
   const double *cellw_y; /* the masses of samples_y's cells (needed when bijective) */
   /* Bijective variant: the weight of the bijectivity term (0 = off; see above). */
   double bijective;
+  /* Fixed features (optional, not with the bijective variant): nfeat columns appended to
+   * both embeddings, row i of feat_x (n_X x nfeat, row-major) against row j of feat_y
+   * (n_Y x nfeat), scaled by feat_w. They are not carried by C: functions known to
+   * correspond (landmark heat kernels) that keep every assignment near the landmarks. */
+  const double *feat_x, *feat_y;
+  int nfeat;
+  double feat_w;
   sm_knn_opts knn;       /* nearest-neighbour strategy */
   int (*cancel)(void *ud);
   void *cancel_ud;

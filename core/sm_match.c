@@ -211,6 +211,8 @@ void sm_match_opts_default(sm_match_opts *o) {
    * in the hybrid basis. */
   o->bijective = 1;
   o->final_hybrid = 1;
+  o->anchor = SM_MATCH_ANCHOR;
+  o->judge_anchor = SM_MATCH_JUDGE_ANCHOR;
 }
 
 void sm_match_result_free(sm_match_result *r) {
@@ -436,10 +438,26 @@ static int sinkhorn_levels(const sm_shape *x, const sm_shape *y, const sm_match_
   return rc;
 }
 
-/* ZoomOut from T in the refinement basis; wb > 0: its bijective variant (sm_fmap.h). */
-static int refine(const sm_shape *x, const sm_shape *y, const sm_match_opts *o, int basis,
-                  double lb_weight, double wb, int32_t *T, double *C, int32_t *T_yx,
-                  sm_error *err) {
+/* The landmark heat kernels of with_landmarks as row-major n x (nl SM_LANDMARK_TIMES)
+ * features of one side (ZoomOut's fixed features). */
+static int landmark_features(const sm_shape *s, const sm_match_opts *o, int side, double **F) {
+  double *D = NULL;
+  int nd = 0, nf = o->nlandmarks * SM_LANDMARK_TIMES;
+  int32_t n = s->mesh->nv;
+  *F = NULL;
+  if (with_landmarks(s, o->landmarks, o->nlandmarks, 2, side, &D, &nd)) return SM_ENOMEM;
+  *F = malloc((size_t)n * nf * sizeof **F);
+  if (*F)
+    for (int c = 0; c < nf; c++)
+      for (int32_t v = 0; v < n; v++) (*F)[(size_t)v * nf + c] = D[(size_t)(s->n_desc + c) * n + v];
+  free(D);
+  return *F ? SM_OK : SM_ENOMEM;
+}
+
+/* ZoomOut from T in the refinement basis, with fixed features fx, fy when not NULL. */
+static int refine_with(const sm_shape *x, const sm_shape *y, const sm_match_opts *o, int basis,
+                       double lb_weight, double wb, const double *fx, const double *fy,
+                       int32_t *T, double *C, int32_t *T_yx, sm_error *err) {
   sm_fmap_pair pairs[2];
   int np = 1;
   const sm_basis *bx = basis == SM_MATCH_LB ? x->lb : x->elastic;
@@ -454,6 +472,12 @@ static int refine(const sm_shape *x, const sm_shape *y, const sm_match_opts *o, 
   zo.pos_x = x->mesh->V;
   zo.pos_y = y->mesh->V;
   zo.bijective = wb;
+  if (fx && fy) {
+    zo.feat_x = fx;
+    zo.feat_y = fy;
+    zo.nfeat = o->nlandmarks * SM_LANDMARK_TIMES;
+    zo.feat_w = o->anchor;
+  }
   zo.knn = match_knn(o);
   shape_fps(x, zo.nsample_x, &zo.samples_x, &zo.cellw_x);
   shape_fps(y, zo.nsample_y, &zo.samples_y, &zo.cellw_y);
@@ -461,6 +485,23 @@ static int refine(const sm_shape *x, const sm_shape *y, const sm_match_opts *o, 
   zo.cancel_ud = o->cancel_ud;
   double *Cs[2] = {C, NULL};
   return sm_zoomout(pairs, np, &zo, T, T, Cs, T_yx, NULL, err);
+}
+
+/* ZoomOut from T in the refinement basis; wb > 0: its bijective variant (sm_fmap.h). */
+static int refine(const sm_shape *x, const sm_shape *y, const sm_match_opts *o, int basis,
+                  double lb_weight, double wb, int32_t *T, double *C, int32_t *T_yx,
+                  sm_error *err) {
+  double *fx = NULL, *fy = NULL;
+  if (o->anchor > 0 && o->nlandmarks > 0 && wb == 0 &&
+      (landmark_features(x, o, 0, &fx) || landmark_features(y, o, 1, &fy))) {
+    free(fx);
+    free(fy);
+    return sm_error_set(err, SM_ENOMEM, "landmark features: out of memory");
+  }
+  int rc = refine_with(x, y, o, basis, lb_weight, wb, fx, fy, T, C, T_yx, err);
+  free(fx);
+  free(fy);
+  return rc;
 }
 
 /* The global search (sm_global.h): the descriptor coarse map C0 and the sign starts of
@@ -790,7 +831,9 @@ static void *run_hypotheses(void *arg) {
     ho.bijective = 0; /* the kept map gets it, once */
     ho.landmarks = q->h[i].pairs;
     ho.nlandmarks = q->h[i].m;
+    ho.anchor = q->o->judge_anchor;
     ho.want_yx = 1;
+    ho.on_tip_map = NULL;
     q->rc[i] = sm_match(q->x, q->y, &ho, &q->r[i], &q->err[i]);
   }
   return NULL;
@@ -806,6 +849,32 @@ static void match_hypotheses(hyp_jobs *q, int nthreads) {
   for (int t = 0; t < started; t++) pthread_join(th[t], NULL);
 }
 
+/* The kept hypothesis's map refined again from itself, its tips anchoring the assignments
+ * at o->anchor instead of o->judge_anchor. */
+static int reanchor(const sm_shape *x, const sm_shape *y, const sm_match_opts *o,
+                    const sm_ext_hypothesis *h, sm_match_result *res, sm_error *err) {
+  sm_match_opts ao = *o;
+  ao.extremities = SM_EXT_OFF;
+  ao.bijective = 0;
+  ao.landmarks = h->pairs;
+  ao.nlandmarks = h->m;
+  ao.init_map = res->T;
+  ao.want_yx = 1;
+  ao.on_tip_map = NULL;
+  sm_match_result r;
+  int rc = sm_match(x, y, &ao, &r, err);
+  if (rc) return rc;
+  r.t_init = res->t_init;
+  r.t_refine += res->t_refine;
+  r.ext_tried = res->ext_tried;
+  r.ext_hypothesis = res->ext_hypothesis;
+  r.distortion = res->distortion;
+  r.turns = res->turns;
+  sm_match_result_free(res);
+  *res = r;
+  return SM_OK;
+}
+
 static int tip_hypotheses(const sm_shape *x, const sm_shape *y, const sm_match_opts *o,
                           const tip_judge *j, const sm_ext_hypothesis *h, int nh,
                           sm_match_result *res, sm_error *err) {
@@ -815,6 +884,7 @@ static int tip_hypotheses(const sm_shape *x, const sm_shape *y, const sm_match_o
   int rc = (!r || !errs || !rcs) ? sm_error_set(err, SM_ENOMEM, "match: out of memory") : SM_OK;
   double best = 0;
   if (!rc) rc = judge(j, x, y, res, &best, err);
+  if (!rc && o->on_tip_map) o->on_tip_map(o->on_tip_map_ud, 0, res, best);
   if (!rc) {
     hyp_jobs q = {.x = x, .y = y, .o = o, .h = h, .nh = nh, .r = r, .err = errs, .rc = rcs};
     atomic_init(&q.next, 0);
@@ -827,7 +897,9 @@ static int tip_hypotheses(const sm_shape *x, const sm_shape *y, const sm_match_o
       *err = errs[i];
     }
     if (!rc) res->ext_tried = i + 1;
-    if (!rc && !(rc = judge(j, x, y, &r[i], &score, err)) && score > best) {
+    if (!rc) rc = judge(j, x, y, &r[i], &score, err);
+    if (!rc && o->on_tip_map) o->on_tip_map(o->on_tip_map_ud, i + 1, &r[i], score);
+    if (!rc && score > best) {
       best = score;
       r[i].ext_tried = res->ext_tried;
       r[i].ext_hypothesis = i + 1;
@@ -840,6 +912,8 @@ static int tip_hypotheses(const sm_shape *x, const sm_shape *y, const sm_match_o
   free(r);
   free(errs);
   free(rcs);
+  if (!rc && res->ext_hypothesis > 0 && o->anchor != o->judge_anchor)
+    rc = reanchor(x, y, o, &h[res->ext_hypothesis - 1], res, err);
   return rc;
 }
 

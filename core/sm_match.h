@@ -60,6 +60,8 @@ enum sm_match_ext { SM_EXT_OFF = 0, SM_EXT_WHEN_DOUBTFUL = 1, SM_EXT_ALWAYS = 2 
 #define SM_MATCH_EXT_BELOW 0.6 /* see "tip search" above and sm_match.c */
 #define SM_MATCH_EXT_MAX_H 12
 #define SM_MATCH_FINAL_LB_WEIGHT 0.5 /* the LB functions' weight in the hybrid final pass */
+#define SM_MATCH_ANCHOR 3.0       /* see "landmark anchoring" above and sm_match.c */
+#define SM_MATCH_JUDGE_ANCHOR 1.0
 
 typedef struct sm_shape_opts {
   int k_lb;        /* LB functions (descriptors, coarse map, lb/hybrid refinement) */
@@ -99,6 +101,8 @@ int sm_shape_assemble(sm_mesh *mesh, sm_basis *lb, sm_basis *elastic, int n_desc
                       sm_shape **out, sm_error *err);
 void sm_shape_destroy(sm_shape *s);
 
+struct sm_match_result;
+
 typedef struct sm_match_opts {
   int basis;        /* enum sm_match_basis (default elastic) */
   int init;         /* enum sm_match_init (default sinkhorn) */
@@ -118,6 +122,12 @@ typedef struct sm_match_opts {
                        ext_below (default), 2 always */
   double ext_below; /* default SM_MATCH_EXT_BELOW */
   int ext_hypotheses; /* tip assignments refined, at most SM_MATCH_EXT_MAX_H (default 4) */
+  double anchor;    /* with landmarks: weight of their heat kernels as fixed features of the
+                       refinement's point assignments (0 = landmarks only start the map;
+                       default SM_MATCH_ANCHOR) */
+  double judge_anchor; /* the same for the tip hypotheses' maps while they are judged
+                       (default SM_MATCH_JUDGE_ANCHOR); the kept one is refined again
+                       at anchor */
   int threads;      /* threads of one match (default 1: a server's workers already
                        fill the cores; the local CLI uses 2): tip hypotheses matched at
                        once, else the refinement's nearest-neighbour queries split over
@@ -126,6 +136,12 @@ typedef struct sm_match_opts {
   int nlandmarks;
   const int32_t *init_map;  /* optional initial map X -> Y (cleaned indices): skips init */
   int want_yx;      /* also compute the Y -> X map */
+  /* Optional observer of the tip search (design data: bench_hard --trace-tips): called on
+   * the calling thread with the descriptor start's map (h = 0) and each hypothesis's map
+   * (h >= 1) and the score the search ranks them by, before the bijective pass. The result
+   * is borrowed for the call. NULL = none. */
+  void (*on_tip_map)(void *ud, int h, const struct sm_match_result *r, double score);
+  void *on_tip_map_ud;
   int (*cancel)(void *ud);
   void *cancel_ud;
 } sm_match_opts;

@@ -646,6 +646,57 @@ static void test_zoomout_permuted(void) {
   free_pair(&s);
 }
 
+/* Fixed features (sm_zoomout_opts.feat_*) decide the assignment when their weight
+ * dominates: features that name another bijection W of the blob onto its permuted copy
+ * (row W[i] of feat_y = row i of feat_x = X's position of i) must make ZoomOut return W
+ * exactly, both ways, whether or not its intermediate iterations run on samples (feature
+ * rows must follow the sampled rows); without them the same start ends on the geometric
+ * truth instead. */
+static void test_zoomout_features(void) {
+  shape_pair s = make_permuted(3, 30);
+  int32_t n = s.mx->nv, *T = malloc((size_t)n * sizeof *T), *Tyx = malloc((size_t)n * sizeof *T);
+  int32_t *W = malloc((size_t)n * sizeof *W);
+  double *fy = malloc((size_t)n * 3 * sizeof *fy);
+  for (int32_t i = 0; i < n; i++) W[i] = s.truth[(i * 7919 + 13) % n];
+  for (int32_t i = 0; i < n; i++) memcpy(fy + 3 * (size_t)W[i], s.mx->V + 3 * (size_t)i, 3 * sizeof *fy);
+  sm_fmap_pair pr = {s.elx, s.ely, 30, 6, 1.0};
+  sm_zoomout_opts o;
+  sm_error err;
+  for (int sampled = 0; sampled < 2; sampled++) {
+    for (int with = 0; with < 2; with++) {
+      memcpy(T, s.truth, (size_t)n * sizeof *T);
+      sm_zoomout_opts_default(&o);
+      o.nsample_x = o.nsample_y = sampled ? 300 : 0;
+      o.pos_x = s.mx->V;
+      o.pos_y = s.my->V;
+      if (with) {
+        o.feat_x = s.mx->V;
+        o.feat_y = fy;
+        o.nfeat = 3;
+        o.feat_w = 1e4;
+      }
+      REQUIRE(sm_zoomout(&pr, 1, &o, T, T, NULL, Tyx, NULL, &err) == 0);
+      const int32_t *want = with ? W : s.truth;
+      int wrong = count_diff(T, want, n), wrong_yx = 0;
+      for (int32_t i = 0; i < n; i++) wrong_yx += Tyx[want[i]] != i;
+      fprintf(stderr, "zoomout features %d, samples %d: %d (yx %d) of %d off the %s\n", with,
+              o.nsample_x, wrong, wrong_yx, n, with ? "features' map" : "truth");
+      CHECK_MSG(wrong == 0 && wrong_yx == 0, "features %d, samples %d: %d (%d) wrong", with,
+                o.nsample_x, wrong, wrong_yx);
+    }
+  }
+  o.bijective = 1; /* the factored bijective candidates have no room for them */
+  CHECK(sm_zoomout(&pr, 1, &o, T, T, NULL, NULL, NULL, &err) == SM_EINVAL);
+  o.bijective = 0;
+  o.feat_y = NULL;
+  CHECK(sm_zoomout(&pr, 1, &o, T, T, NULL, NULL, NULL, &err) == SM_EINVAL);
+  free(T);
+  free(Tyx);
+  free(W);
+  free(fy);
+  free_pair(&s);
+}
+
 static int cancel_after(void *ud) { return --*(int *)ud < 0; }
 
 static void test_zoomout_errors(void) {
@@ -700,6 +751,7 @@ int main(void) {
   test_p2p_formula();
   test_classic_equivalence();
   test_zoomout_permuted();
+  test_zoomout_features();
   test_zoomout_errors();
   return sm_test_finish();
 }
