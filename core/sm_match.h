@@ -26,6 +26,12 @@
  *     confidence, between species (gorilla -> human); the tips put such a pair in the
  *     right basin. Costs one match per hypothesis, so only doubtful maps pay for it;
  *     SM_EXT_ALWAYS also searches confident ones (exhaustive mode), SM_EXT_OFF never.
+ *   landmark anchoring (landmarks given, or a tip hypothesis): the landmarks' heat kernels
+ *     are fixed features of every point assignment of the refinement (sm_zoomout_opts
+ *     .feat_*, weight opts.anchor), so the map keeps them instead of drifting once they
+ *     have started it. The tip search judges its maps at judge_anchor (1) and refines the
+ *     kept one again from itself at anchor (3): strong anchoring makes wrong tip
+ *     assignments look as continuous as right ones (sm_match.c, reanchor).
  *   bijective pass (default on; opts.bijective = its weight, 0 = off): the kept map is
  *     refined once more, ZoomOut from k0 in its bijective form (sm_fmap.h: the Y -> X map
  *     is fitted too and both point maps come from one nearest-neighbour problem), in the
