@@ -25,8 +25,7 @@
  *                   [--global 0|1|2] [--multi-start] [--k1 K] [--analyze] [--trace-tips]
  *                   [--extremities 0|1|2] [--ext-below C] [--ext-hypotheses H]
  *                   [--bijective W] (the last stage's bijective ZoomOut weight, 0 = off)
- *                   [--anchor W] [--judge-anchor W] (landmark anchoring of the kept tip
- *                   map and of the hypotheses while judged; 0 = off)
+ *                   [--anchor W] (landmark anchoring of the kept tip map; 0 = off)
  * Exit: 0, 1 on a failure, 77 when ../shared/data is absent.
  */
 #define _POSIX_C_SOURCE 200809L
@@ -70,7 +69,7 @@ typedef struct bench_cfg {
   const char *cache;
   int global, multi_start, k1, analyze, trace_tips, extremities, ext_h;
   double ext_below, bijective; /* bijective < 0: the product's default */
-  double anchor, judge_anchor;  /* < 0: the product's default */
+  double anchor;                /* < 0: the product's default */
 } bench_cfg;
 
 /* ---- shapes, with their bases cached on disk ----------------------------------------- */
@@ -165,7 +164,6 @@ static void match_options(const bench_cfg *c, sm_match_opts *o) {
   if (c->k1 > 0) o->k1 = c->k1;
   if (c->bijective >= 0) o->bijective = c->bijective;
   if (c->anchor >= 0) o->anchor = c->anchor;
-  if (c->judge_anchor >= 0) o->judge_anchor = c->judge_anchor;
   o->want_yx = 1;
 }
 
@@ -460,13 +458,13 @@ static void usage(void) {
   fprintf(stderr, "usage: bench_hard [--sets gorilla,manwoman,within,classic] [--cache DIR] "
                   "[--threads N] [--json OUT] [--limit N] [--global 0|1] [--multi-start] "
                   "[--k1 K] [--analyze] [--trace-tips] [--extremities 0|1|2] [--ext-below C] "
-                  "[--ext-hypotheses H] [--bijective W] [--anchor W] [--judge-anchor W]\n");
+                  "[--ext-hypotheses H] [--bijective W] [--anchor W]\n");
 }
 
 int main(int argc, char **argv) {
   bench_cfg cfg = {.cache = "bench-cache", .global = -1, .extremities = -1,
                    .ext_below = -1, .bijective = -1,
-                   .anchor = -1, .judge_anchor = -1};
+                   .anchor = -1};
   const char *sets_arg = NULL, *json = NULL;
   int threads = 2, limit = 0;
   for (int i = 1; i < argc; i++) {
@@ -484,7 +482,6 @@ int main(int argc, char **argv) {
     else if (!strcmp(a, "--ext-hypotheses") && v) cfg.ext_h = atoi(argv[++i]);
     else if (!strcmp(a, "--bijective") && v) cfg.bijective = atof(argv[++i]);
     else if (!strcmp(a, "--anchor") && v) cfg.anchor = atof(argv[++i]);
-    else if (!strcmp(a, "--judge-anchor") && v) cfg.judge_anchor = atof(argv[++i]);
     else if (!strcmp(a, "--multi-start")) cfg.multi_start = 1;
     else if (!strcmp(a, "--analyze")) cfg.analyze = 1;
     else if (!strcmp(a, "--trace-tips")) cfg.trace_tips = 1;

@@ -26,12 +26,14 @@
  *     confidence, between species (gorilla -> human); the tips put such a pair in the
  *     right basin. Costs one match per hypothesis, so only doubtful maps pay for it;
  *     SM_EXT_ALWAYS also searches confident ones (exhaustive mode), SM_EXT_OFF never.
- *   landmark anchoring (landmarks given, or a tip hypothesis): the landmarks' heat kernels
- *     are fixed features of every point assignment of the refinement (sm_zoomout_opts
- *     .feat_*, weight opts.anchor), so the map keeps them instead of drifting once they
- *     have started it. The tip search judges its maps at judge_anchor (1) and refines the
- *     kept one again from itself at anchor (3): strong anchoring makes wrong tip
- *     assignments look as continuous as right ones (sm_match.c, reanchor).
+ *   landmark anchoring (landmarks given, or the kept tip hypothesis): the landmarks' heat
+ *     kernels are fixed features of every point assignment of the refinement
+ *     (sm_zoomout_opts.feat_*, weight opts.anchor), so the map keeps them instead of
+ *     drifting once they have started it. The tip search judges its maps unanchored (an
+ *     anchored wrong assignment looks as continuous as a right one) and refines the kept
+ *     one again from itself, anchored by the tips that map confirms, keeping the anchored
+ *     map when the judge scores it at least as well (sm_match.c: confirmed_tips,
+ *     anchored).
  *   bijective pass (default on; opts.bijective = its weight, 0 = off): the kept map is
  *     refined once more, ZoomOut from k0 in its bijective form (sm_fmap.h: the Y -> X map
  *     is fitted too and both point maps come from one nearest-neighbour problem), in the
@@ -67,7 +69,6 @@ enum sm_match_ext { SM_EXT_OFF = 0, SM_EXT_WHEN_DOUBTFUL = 1, SM_EXT_ALWAYS = 2 
 #define SM_MATCH_EXT_MAX_H 12
 #define SM_MATCH_FINAL_LB_WEIGHT 0.5 /* the LB functions' weight in the hybrid final pass */
 #define SM_MATCH_ANCHOR 3.0       /* see "landmark anchoring" above and sm_match.c */
-#define SM_MATCH_JUDGE_ANCHOR 1.0
 
 typedef struct sm_shape_opts {
   int k_lb;        /* LB functions (descriptors, coarse map, lb/hybrid refinement) */
@@ -128,12 +129,9 @@ typedef struct sm_match_opts {
                        ext_below (default), 2 always */
   double ext_below; /* default SM_MATCH_EXT_BELOW */
   int ext_hypotheses; /* tip assignments refined, at most SM_MATCH_EXT_MAX_H (default 4) */
-  double anchor;    /* with landmarks: weight of their heat kernels as fixed features of the
-                       refinement's point assignments (0 = landmarks only start the map;
-                       default SM_MATCH_ANCHOR) */
-  double judge_anchor; /* the same for the tip hypotheses' maps while they are judged
-                       (default SM_MATCH_JUDGE_ANCHOR); the kept one is refined again
-                       at anchor */
+  double anchor;    /* with landmarks (or the kept tips): weight of their heat kernels as
+                       fixed features of the refinement's point assignments (0 = they only
+                       start the map; default SM_MATCH_ANCHOR) */
   int threads;      /* threads of one match (default 1: a server's workers already
                        fill the cores; the local CLI uses 2): tip hypotheses matched at
                        once, else the refinement's nearest-neighbour queries split over
