@@ -26,6 +26,8 @@
  *                   [--extremities 0|1|2] [--ext-below C] [--ext-hypotheses H]
  *                   [--bijective W] (the last stage's bijective ZoomOut weight, 0 = off)
  *                   [--anchor W] (landmark anchoring of the kept tip map; 0 = off)
+ *                   [--match-threads N] (threads of each match, sm_match_opts.threads;
+ *                   with --threads 1, the time of one match using N cores)
  * Exit: 0, 1 on a failure, 77 when ../shared/data is absent.
  */
 #define _POSIX_C_SOURCE 200809L
@@ -70,6 +72,7 @@ typedef struct bench_cfg {
   int global, multi_start, k1, analyze, trace_tips, extremities, ext_h;
   double ext_below, bijective; /* bijective < 0: the product's default */
   double anchor;                /* < 0: the product's default */
+  int match_threads;            /* sm_match_opts.threads of each match; 0: the default */
 } bench_cfg;
 
 /* ---- shapes, with their bases cached on disk ----------------------------------------- */
@@ -164,6 +167,7 @@ static void match_options(const bench_cfg *c, sm_match_opts *o) {
   if (c->k1 > 0) o->k1 = c->k1;
   if (c->bijective >= 0) o->bijective = c->bijective;
   if (c->anchor >= 0) o->anchor = c->anchor;
+  if (c->match_threads > 0) o->threads = c->match_threads;
   o->want_yx = 1;
 }
 
@@ -458,7 +462,7 @@ static void usage(void) {
   fprintf(stderr, "usage: bench_hard [--sets gorilla,manwoman,within,classic] [--cache DIR] "
                   "[--threads N] [--json OUT] [--limit N] [--global 0|1] [--multi-start] "
                   "[--k1 K] [--analyze] [--trace-tips] [--extremities 0|1|2] [--ext-below C] "
-                  "[--ext-hypotheses H] [--bijective W] [--anchor W]\n");
+                  "[--ext-hypotheses H] [--bijective W] [--anchor W] [--match-threads N]\n");
 }
 
 int main(int argc, char **argv) {
@@ -482,6 +486,7 @@ int main(int argc, char **argv) {
     else if (!strcmp(a, "--ext-hypotheses") && v) cfg.ext_h = atoi(argv[++i]);
     else if (!strcmp(a, "--bijective") && v) cfg.bijective = atof(argv[++i]);
     else if (!strcmp(a, "--anchor") && v) cfg.anchor = atof(argv[++i]);
+    else if (!strcmp(a, "--match-threads") && v) cfg.match_threads = atoi(argv[++i]);
     else if (!strcmp(a, "--multi-start")) cfg.multi_start = 1;
     else if (!strcmp(a, "--analyze")) cfg.analyze = 1;
     else if (!strcmp(a, "--trace-tips")) cfg.trace_tips = 1;

@@ -201,34 +201,56 @@ int sm_fmap_embed_y(const sm_basis *x, const sm_basis *y, int k, const double *C
   return embed_y_scaled(x, y, k, C, 1.0, E_y, ld, err);
 }
 
-int sm_fmap_to_p2p(const sm_fmap_pair *pairs, int npairs, const double *const *C, int32_t *T,
-                   int32_t *T_yx, const sm_knn_opts *ko, sm_error *err) {
-  int rc = check_pairs(pairs, npairs, err);
-  if (rc) return rc;
+/* C -> P on the X rows `rows` (NULL: all nq = n_X of them, T[i]; otherwise T[rows[r]]),
+ * T_yx (only with every row) from the same pass. */
+static int to_p2p(const sm_fmap_pair *pairs, int npairs, const double *const *C,
+                  const int32_t *rows, int32_t nq, int32_t *T, int32_t *T_yx,
+                  const sm_knn_opts *ko, sm_error *err) {
   if (!C || !T) return sm_error_set(err, SM_EINVAL, "fmap: missing C or T");
-  int D = 0;
+  int D = 0, rc = 0;
   for (int p = 0; p < npairs; p++) {
     if (!C[p]) return sm_error_set(err, SM_EINVAL, "fmap: missing C for pair %d", p);
     D += pairs[p].k;
   }
-  int32_t nx = pairs[0].x->n, ny = pairs[0].y->n;
-  double *EX = malloc((size_t)nx * D * sizeof(double));
+  int32_t ny = pairs[0].y->n;
+  double *EX = malloc((size_t)nq * D * sizeof(double));
   double *EY = malloc((size_t)ny * D * sizeof(double));
-  if (!EX || !EY) {
+  int32_t *Tq = rows ? malloc((size_t)nq * sizeof(int32_t)) : T;
+  if (!EX || !EY || !Tq) {
     rc = sm_error_set(err, SM_ENOMEM, "fmap: embeddings of dimension %d", D);
     goto done;
   }
   for (int p = 0, off = 0; p < npairs && !rc; off += pairs[p].k, p++) {
     double s = pair_weight(&pairs[p]);
-    whiten(pairs[p].x, pairs[p].k, NULL, nx, s, EX + off, D);
+    whiten(pairs[p].x, pairs[p].k, rows, nq, s, EX + off, D);
     rc = embed_y_scaled(pairs[p].x, pairs[p].y, pairs[p].k, C[p], s, EY + off, D, err);
   }
-  if (!rc && T_yx) rc = assign_both(EY, ny, EX, nx, D, ko, T, T_yx, err);
-  else if (!rc) rc = assign(EY, ny, EX, nx, D, NULL, ko, T, err);
+  if (!rc && T_yx) rc = assign_both(EY, ny, EX, nq, D, ko, Tq, T_yx, err);
+  else if (!rc) rc = assign(EY, ny, EX, nq, D, NULL, ko, Tq, err);
+  for (int32_t r = 0; !rc && rows && r < nq; r++) T[rows[r]] = Tq[r];
 done:
+  if (rows) free(Tq);
   free(EX);
   free(EY);
   return rc;
+}
+
+int sm_fmap_to_p2p(const sm_fmap_pair *pairs, int npairs, const double *const *C, int32_t *T,
+                   int32_t *T_yx, const sm_knn_opts *ko, sm_error *err) {
+  int rc = check_pairs(pairs, npairs, err);
+  if (rc) return rc;
+  return to_p2p(pairs, npairs, C, NULL, pairs[0].x->n, T, T_yx, ko, err);
+}
+
+int sm_fmap_to_p2p_rows(const sm_fmap_pair *pairs, int npairs, const double *const *C,
+                        const int32_t *rows, int32_t nrows, int32_t *T, const sm_knn_opts *ko,
+                        sm_error *err) {
+  int rc = check_pairs(pairs, npairs, err);
+  if (rc) return rc;
+  if (!rows || nrows < 1) return sm_error_set(err, SM_EINVAL, "fmap: no query rows");
+  rc = check_map(rows, nrows, pairs[0].x->n, err);
+  if (rc) return rc;
+  return to_p2p(pairs, npairs, C, rows, nrows, T, NULL, ko, err);
 }
 
 /* ---- farthest-point sampling -------------------------------------------------------- */

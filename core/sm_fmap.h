@@ -93,6 +93,13 @@ int sm_fmap_from_p2p(const sm_basis *x, const sm_basis *y, int k, const int32_t 
 int sm_fmap_to_p2p(const sm_fmap_pair *pairs, int npairs, const double *const *C, int32_t *T,
                    int32_t *T_yx, const sm_knn_opts *ko, sm_error *err);
 
+/* The same for the X vertices rows[0 .. nrows) only: T[rows[r]] is written, every other
+ * entry of T (n_X) is left as it was. For a caller that needs the map on a sample (the
+ * start of a ZoomOut on that sample). Errors also SM_ERANGE (a row outside X). */
+int sm_fmap_to_p2p_rows(const sm_fmap_pair *pairs, int npairs, const double *const *C,
+                        const int32_t *rows, int32_t nrows, int32_t *T, const sm_knn_opts *ko,
+                        sm_error *err);
+
 /* The embeddings themselves (for other assignment schemes, e.g. Sinkhorn): row-major, row
  * stride ld >= k, only columns [0, k) written. E_x: n_X rows a_i; E_y: n_Y rows b_j. */
 int sm_fmap_embed_x(const sm_basis *x, int k, double *E_x, int ld, sm_error *err);

@@ -432,7 +432,13 @@ static int sinkhorn_levels(const sm_shape *x, const sm_shape *y, const sm_match_
   sm_fmap_pair pair = {bx, by, k, k, 1.0};
   const double *Cs[1] = {C};
   sm_knn_opts ko = match_knn(o);
-  if (!rc) rc = sm_fmap_to_p2p(&pair, 1, Cs, T, NULL, &ko, err);
+  /* The ZoomOut that follows (refine) reads T only on its X samples, the cached ones when
+   * there are: the map is computed there alone (2,000 of homer's 5,103 rows). */
+  const int32_t *S;
+  const double *cellw;
+  shape_fps(x, o->samples, &S, &cellw);
+  if (!rc && S) rc = sm_fmap_to_p2p_rows(&pair, 1, Cs, S, o->samples, T, &ko, err);
+  else if (!rc) rc = sm_fmap_to_p2p(&pair, 1, Cs, T, NULL, &ko, err);
   free(C);
   return rc;
 }

@@ -430,6 +430,19 @@ static void test_p2p_formula(void) {
   for (int32_t i = 0; i < n; i++) naive_knn(B, y->n, A + (size_t)i * k, k, 1, Tref + i, &dref);
   CHECK_MSG(count_diff(T, Tref, n) == 0, "%d of %d vertices differ from the formula",
             count_diff(T, Tref, n), n);
+  /* On a subset of rows (every third vertex, backwards): those rows as the formula says,
+   * the others untouched; a row outside X is refused. */
+  int32_t nr = 0, *rows = malloc((size_t)n * sizeof *rows), *Tr = malloc((size_t)n * sizeof *Tr);
+  for (int32_t i = n - 1; i >= 0; i -= 3) rows[nr++] = i;
+  for (int32_t i = 0; i < n; i++) Tr[i] = -7;
+  REQUIRE(sm_fmap_to_p2p_rows(&pr, 1, Cs, rows, nr, Tr, NULL, &err) == 0);
+  int bad = 0;
+  for (int32_t i = 0; i < n; i++) bad += Tr[i] != ((n - 1 - i) % 3 == 0 ? Tref[i] : -7);
+  CHECK_MSG(bad == 0, "%d of %d entries wrong after the %d-row conversion", bad, n, nr);
+  rows[nr / 2] = n;
+  CHECK(sm_fmap_to_p2p_rows(&pr, 1, Cs, rows, nr, Tr, NULL, &err) == SM_ERANGE);
+  free(rows);
+  free(Tr);
   /* The embeddings exported for other assignment schemes are the same ones. */
   double *E = malloc((size_t)y->n * k * sizeof *E), worst = 0;
   REQUIRE(sm_fmap_embed_y(x, y, k, C, E, k, &err) == 0);
