@@ -28,6 +28,7 @@
  *                   [--anchor W] (landmark anchoring of the kept tip map; 0 = off)
  *                   [--match-threads N] (threads of each match, sm_match_opts.threads;
  *                   with --threads 1, the time of one match using N cores)
+ *                   [--only A-B,C-D] (only these pairs of the lists, by name)
  * Exit: 0, 1 on a failure, 77 when ../shared/data is absent.
  */
 #define _POSIX_C_SOURCE 200809L
@@ -93,6 +94,23 @@ static const char *base_name(const char *path) {
 
 /* ---- the pair lists --------------------------------------------------------------- */
 
+/* --only: a comma-separated list of pair names "src-tgt" (NULL: every pair). */
+static const char *only_pairs;
+
+static int wanted(const char *a, const char *b) {
+  if (!only_pairs) return 1;
+  char name[260];
+  snprintf(name, sizeof name, "%s-%s", a, b);
+  size_t len = strlen(name);
+  for (const char *s = only_pairs; *s;) {
+    const char *e = strchr(s, ',');
+    size_t l = e ? (size_t)(e - s) : strlen(s);
+    if (l == len && !strncmp(s, name, l)) return 1;
+    s += l + (e ? 1 : 0);
+  }
+  return 0;
+}
+
 static int add_list(hard_pair *P, int n, const char *set, const char *dir, const char *list,
                     const char *mesh_fmt, int limit) {
   char path[2048];
@@ -102,6 +120,7 @@ static int add_list(hard_pair *P, int n, const char *set, const char *dir, const
   char a[128], b[128];
   int added = 0;
   while (n < MAX_PAIRS && fscanf(f, "%127s %127s", a, b) == 2 && (!limit || added < limit)) {
+    if (!wanted(a, b)) continue;
     hard_pair *p = &P[n++];
     memset(p, 0, sizeof *p);
     snprintf(p->set, sizeof p->set, "%s", set);
@@ -462,7 +481,7 @@ static void usage(void) {
   fprintf(stderr, "usage: bench_hard [--sets gorilla,manwoman,within,classic] [--cache DIR] "
                   "[--threads N] [--json OUT] [--limit N] [--global 0|1] [--multi-start] "
                   "[--k1 K] [--analyze] [--trace-tips] [--extremities 0|1|2] [--ext-below C] "
-                  "[--ext-hypotheses H] [--bijective W] [--anchor W] [--match-threads N]\n");
+                  "[--ext-hypotheses H] [--bijective W] [--anchor W] [--match-threads N] [--only PAIR,PAIR]\n");
 }
 
 int main(int argc, char **argv) {
@@ -487,6 +506,7 @@ int main(int argc, char **argv) {
     else if (!strcmp(a, "--bijective") && v) cfg.bijective = atof(argv[++i]);
     else if (!strcmp(a, "--anchor") && v) cfg.anchor = atof(argv[++i]);
     else if (!strcmp(a, "--match-threads") && v) cfg.match_threads = atoi(argv[++i]);
+    else if (!strcmp(a, "--only") && v) only_pairs = argv[++i];
     else if (!strcmp(a, "--multi-start")) cfg.multi_start = 1;
     else if (!strcmp(a, "--analyze")) cfg.analyze = 1;
     else if (!strcmp(a, "--trace-tips")) cfg.trace_tips = 1;
