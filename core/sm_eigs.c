@@ -36,6 +36,7 @@
  *   Problems too small for the Krylov space (n < basis + 2 b) are solved densely (LAPACK
  *   dsyevr on S^-1 A S^-1).
  */
+#define _DEFAULT_SOURCE /* madvise, MADV_HUGEPAGE */
 #include "sm_eigs.h"
 
 #include <cblas.h>
@@ -44,6 +45,7 @@
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/mman.h>
 #include <time.h>
 
 /* OpenMP's switch, reached through CHOLMOD: libcholmod links libgomp when it was built
@@ -201,11 +203,26 @@ static void bks_free(bks *w) {
   free(w->res); free(w->G); free(w->tau); free(w->rows); free(w->isuppz); free(w->lth);
 }
 
+/* The Krylov basis: 0.5 GB for the koala's elastic problem (150k unknowns x 416 vectors).
+ * Aligned to 2 MiB and marked for transparent huge pages (the kernel's "madvise" mode, as
+ * on Debian): first touches then fault 2 MiB at a time and the GEMMs over it miss the TLB
+ * less. perf on this VM: 10% of the koala's eigensolve was the kernel zeroing fresh 4 KiB
+ * pages as the basis grew; measured, eigensolve 11.49 -> 11.0 s (two runs each). */
+static void *big_alloc(size_t bytes) {
+  enum { PAGE_2M = 2u << 20 };
+  void *p = NULL;
+  if (bytes < 4 * (size_t)PAGE_2M) return malloc(bytes);
+  size_t len = (bytes + PAGE_2M - 1) / PAGE_2M * PAGE_2M;
+  if (posix_memalign(&p, PAGE_2M, len)) return NULL;
+  madvise(p, len, MADV_HUGEPAGE); /* advice only: its failure changes nothing */
+  return p;
+}
+
 static int bks_alloc(bks *w, int n, int nev, int b, int mmax, int keep) {
   memset(w, 0, sizeof *w);
   w->n = n; w->nev = nev; w->b = b; w->mmax = mmax; w->keep = keep;
   size_t m = (size_t)mmax;
-  w->V = malloc((size_t)n * (m + (size_t)b) * sizeof(double));
+  w->V = big_alloc((size_t)n * (m + (size_t)b) * sizeof(double));
   w->W = malloc((size_t)n * b * sizeof(double));
   w->H = calloc(m * m, sizeof(double));
   w->R = calloc((size_t)b * b, sizeof(double));
