@@ -147,9 +147,11 @@ static int make_tmpdir(char *out, size_t n) {
 }
 
 /* Starts the daemon on data dir `data` with `threads` workers; blas_env, when non-NULL,
- * is exported as OPENBLAS_NUM_THREADS. Waits (<= 30 s) for `msg=listening port=N`. */
+ * is exported as OPENBLAS_NUM_THREADS; prepare_on_put 0 stops PUT from queueing the
+ * shape's preparation (section 5 measures PREPARE doing it). Waits (<= 30 s) for
+ * `msg=listening port=N`. */
 static int daemon_start(daemon_proc *d, const char *tmp, const char *data, int threads,
-                        const char *blas_env) {
+                        const char *blas_env, int prepare_on_put) {
   memset(d, 0, sizeof *d);
   snprintf(d->dir, sizeof d->dir, "%s", tmp);
   char log[320], th[16];
@@ -166,7 +168,7 @@ static int daemon_start(daemon_proc *d, const char *tmp, const char *data, int t
     dup2(fileno(stderr), 1);
     if (blas_env) setenv("OPENBLAS_NUM_THREADS", blas_env, 1);
     execl(g_server_bin, "shapematchd", "--port", "0", "--data-dir", data, "--threads", th,
-          (char *)NULL);
+          "--prepare-on-put", prepare_on_put ? "1" : "0", (char *)NULL);
     _exit(127);
   }
   d->pid = pid;
@@ -601,7 +603,7 @@ static double prepare_round(const shape_set *ss, int workers, double *server_med
   pthread_t th[MAX_CLIENTS];
   memset(w, 0, sizeof w);
   double rate = NAN;
-  int ok = !daemon_start(&dp, tmp, data, workers, NULL);
+  int ok = !daemon_start(&dp, tmp, data, workers, NULL, 0);
   sm_client *c = NULL;
   if (ok) ok = !connect_client(dp.addr, &c);
   for (int i = 0; ok && i < ss->n; i++) {
@@ -756,7 +758,7 @@ int main(int argc, char **argv) {
 
   /* ---- 1. warm throughput ---- */
   if (want[1]) printf("\n[1] warm throughput, daemon --threads %d\n", threads);
-  if (want[1] && (daemon_start(&dA, tmpA, dataA, threads, NULL) || warm_up(dA.addr, &in, 1)))
+  if (want[1] && (daemon_start(&dA, tmpA, dataA, threads, NULL, 1) || warm_up(dA.addr, &in, 1)))
     rc = 1;
   static const int NCL[3] = {1, 2, 8};
   for (int op = OP_DISTANCE; want[1] && !rc && op >= OP_MATCH; op--)
@@ -818,7 +820,7 @@ int main(int argc, char **argv) {
   double emul_pool = NAN, emul_blas = NAN;
   if (!rc && want[4]) {
     printf("\n[4] pool vs BLAS threads: daemon --threads 1 with OPENBLAS_NUM_THREADS=2\n");
-    if (daemon_start(&dB, tmpA, dataA, 1, "2") || warm_up(dB.addr, &in, 0)) rc = 1;
+    if (daemon_start(&dB, tmpA, dataA, 1, "2", 1) || warm_up(dB.addr, &in, 0)) rc = 1;
     for (int k = 1; k < 3 && !rc; k++)
       if (run_phase("blas", dnameB, dB.addr, OP_MATCH, &in, NCL[k], n_match, budget)) rc = 1;
     daemon_stop(&dB);
@@ -846,7 +848,7 @@ int main(int argc, char **argv) {
     }
     snprintf(dataC, sizeof dataC, "%s/data", tmpC);
     sm_client *c = NULL;
-    if (daemon_start(&dC, tmpC, dataC, threads, NULL) || connect_client(dC.addr, &c)) rc = 1;
+    if (daemon_start(&dC, tmpC, dataC, threads, NULL, 1) || connect_client(dC.addr, &c)) rc = 1;
     sm_client_error e;
     sm_client_match_result r;
     memset(&r, 0, sizeof r);
