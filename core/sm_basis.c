@@ -161,7 +161,8 @@ static sm_basis *basis_new(const sm_mesh *m, const sm_basis_opts *o) {
  * block solver's last steps cut the residuals by orders at a time, so the looser test only
  * ends it a step or two earlier with the same bases: against 1e-9, homerA, headA and the
  * koala, LB and elastic k = 100, eigenvalues equal to 1.5e-14 relative and every function
- * to 1 - |cos| <= 1.6e-14 (M-inner product), in 12% fewer solves on the koala (elastic
+ * equal up to sign (|cos| in the M inner product 1 to 9 digits; 1 - |cos| <= 1.6e-14 where
+ * measured to the last digit, homerA LB), in 12% fewer solves on the koala (elastic
  * 544 -> 480; eigensolve 11.5 -> 10.4 s) and 10-30% less eigensolve time on the others. */
 #define SM_BASIS_EIGS_TOL 1e-7
 
