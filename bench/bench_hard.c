@@ -481,7 +481,8 @@ static void usage(void) {
   fprintf(stderr, "usage: bench_hard [--sets gorilla,manwoman,within,classic] [--cache DIR] "
                   "[--threads N] [--json OUT] [--limit N] [--global 0|1] [--multi-start] "
                   "[--k1 K] [--analyze] [--trace-tips] [--extremities 0|1|2] [--ext-below C] "
-                  "[--ext-hypotheses H] [--bijective W] [--anchor W] [--match-threads N] [--only PAIR,PAIR]\n");
+                  "[--ext-hypotheses H] [--bijective W] [--anchor W] [--match-threads N] "
+                  "[--only PAIR,PAIR]\n");
 }
 
 int main(int argc, char **argv) {
