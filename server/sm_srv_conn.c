@@ -1,4 +1,5 @@
 /* Connection state machine and frame handling on the loop thread: see sm_srv_conn.h. */
+#define _GNU_SOURCE /* mremap: read buffers grow as mapped pages */
 #include "sm_srv_conn.h"
 
 #include <errno.h>
@@ -6,6 +7,7 @@
 #include <stdlib.h>
 #include <string.h>
 #include <sys/epoll.h>
+#include <sys/mman.h>
 #include <sys/socket.h>
 #include <unistd.h>
 
@@ -15,6 +17,12 @@
 #include "sm_srv_store.h"
 
 #define RBUF_MIN 4096u
+/* Read buffers from this size on are pages of their own (mmap, grown by mremap) instead of
+ * heap chunks: freeing one gives its pages back at once. From the heap, the holes that
+ * growing and freed read buffers left stayed resident until malloc_trim: bench_hostile's
+ * uploads held the daemon 7-16 MiB above budget + unloaded peak with heap buffers up to
+ * the 1 MiB mmap threshold (docs/RELIABILITY.md section 3). */
+#define RBUF_MAP_MIN (64u << 10)
 #define STEAL_MIN (64u << 10)  /* hand a large frame's buffer to its job instead of copying */
 #define LINGER_NS 2000000000ull
 #define BUSY_RETRY_MS 100u
@@ -47,9 +55,49 @@ static size_t wq_cap(const sm_server *s) {
   return s->buf_used > s->cfg.buffer_budget / 2 ? SM_CONN_WQ_TIGHT : SM_CONN_WQ_HIGH;
 }
 
+/* ---- read buffer memory: heap below RBUF_MAP_MIN, mapped pages from it (a capacity
+ * tells which) */
+
+static size_t rmem_cap(size_t want) {
+  if (want < RBUF_MAP_MIN) return want;
+  size_t pg = (size_t)sysconf(_SC_PAGESIZE);
+  return (want + pg - 1) / pg * pg;
+}
+
+/* What a buffer of capacity cap costs the budget: its pages, or the chunk and malloc's
+ * bookkeeping beside it. */
+static size_t rmem_cost(size_t cap) {
+  return cap == 0 ? 0 : cap >= RBUF_MAP_MIN ? cap : cap + MALLOC_OVERHEAD;
+}
+
+static void rmem_free(uint8_t *p, size_t cap) {
+  if (cap >= RBUF_MAP_MIN) munmap(p, cap);
+  else free(p);
+}
+
+/* p (capacity cap, keep bytes used; NULL when cap is 0) moved to capacity ncap (from
+ * rmem_cap); NULL when out of memory, p untouched then. */
+static uint8_t *rmem_resize(uint8_t *p, size_t cap, size_t ncap, size_t keep) {
+  void *q;
+  if (cap >= RBUF_MAP_MIN && ncap >= RBUF_MAP_MIN) {
+    q = mremap(p, cap, ncap, MREMAP_MAYMOVE);
+    return q == MAP_FAILED ? NULL : q;
+  }
+  if (cap < RBUF_MAP_MIN && ncap < RBUF_MAP_MIN) return realloc(p, ncap);
+  if (ncap >= RBUF_MAP_MIN) {
+    q = mmap(NULL, ncap, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
+    if (q == MAP_FAILED) return NULL;
+  } else if (!(q = malloc(ncap))) {
+    return NULL;
+  }
+  if (keep) memcpy(q, p, keep);
+  rmem_free(p, cap);
+  return q;
+}
+
 static void rbuf_free(sm_server *s, sm_conn *c) {
-  if (c->rcap) release(s, &c->held, c->rcap + MALLOC_OVERHEAD);
-  free(c->rbuf);
+  if (c->rcap) release(s, &c->held, rmem_cost(c->rcap));
+  if (c->rbuf) rmem_free(c->rbuf, c->rcap);
   c->rbuf = NULL;
   c->rcap = 0;
   c->rlen = 0;
@@ -59,18 +107,19 @@ static void rbuf_free(sm_server *s, sm_conn *c) {
 /* Resizes the read buffer to ncap (>= rlen), within the budget when it grows. Returns 0,
  * or -1: no room (rule 2: the caller stops reading) or out of memory (errno ENOMEM). */
 static int rbuf_resize(sm_server *s, sm_conn *c, size_t ncap) {
-  size_t old = c->rcap ? c->rcap + MALLOC_OVERHEAD : 0;
-  if (ncap > c->rcap && s->buf_used - old + ncap + MALLOC_OVERHEAD > s->cfg.buffer_budget) {
+  size_t old = rmem_cost(c->rcap);
+  ncap = rmem_cap(ncap);
+  if (ncap > c->rcap && s->buf_used - old + rmem_cost(ncap) > s->cfg.buffer_budget) {
     errno = 0;
     return -1;
   }
-  uint8_t *nb = realloc(c->rbuf, ncap);
+  uint8_t *nb = rmem_resize(c->rbuf, c->rcap, ncap, c->rlen);
   if (!nb) {
     errno = ENOMEM;
     return -1;
   }
   if (old) release(s, &c->held, old);
-  charge(s, &c->held, ncap + MALLOC_OVERHEAD);
+  charge(s, &c->held, rmem_cost(ncap));
   c->rbuf = nb;
   c->rcap = ncap;
   return 0;
@@ -149,6 +198,9 @@ sm_conn *sm_conn_new(sm_server *s, int fd, int kind, const char *peer) {
     free(c);
     return NULL;
   }
+  charge(s, &c->own, sizeof *c + MALLOC_OVERHEAD +
+                        (s->cfg.max_inflight ? s->cfg.max_inflight : 1) * sizeof *c->inflight +
+                        MALLOC_OVERHEAD);
   c->kind = kind;
   c->fd = fd;
   c->id = ++s->next_conn_id;
@@ -178,6 +230,7 @@ static void conn_free(sm_server *s, sm_conn *c) {
   rbuf_free(s, c);
   if (c->budget_blocked) s->n_budget_blocked--;
   if (c->backlogged) s->n_backlogged--;
+  release(s, &c->own, c->own);
   free(c->inflight);
   free(c);
 }
@@ -434,8 +487,9 @@ static void submit_job(sm_server *s, sm_conn *c, const sm_proto_frame *f, size_t
   }
   if (steal) { /* the frame is the whole buffer: hand it over, with its charge */
     j->buf = c->rbuf;
+    j->buf_cap = c->rcap;
     j->body = f->body;
-    j->charged = c->rcap + MALLOC_OVERHEAD;
+    j->charged = rmem_cost(c->rcap);
     release(s, &c->held, j->charged);
     c->rbuf = NULL;
     c->rcap = 0;
@@ -464,7 +518,7 @@ static void submit_job(sm_server *s, sm_conn *c, const sm_proto_frame *f, size_t
   int rc = sm_pool_submit(s->pool, &j->base);
   if (rc) {
     release(s, &c->job_bytes, j->charged + sizeof *j);
-    free(j->buf);
+    rmem_free(j->buf, j->buf_cap);
     free(j);
     if (rc == SM_POOL_EFULL) {
       sm_met_add(&sm_met.busy, 1);
@@ -764,7 +818,7 @@ void sm_conn_on_done(sm_server *s, sm_srv_out *o) {
     if (i >= 0) c->inflight[i] = c->inflight[--c->n_inflight];
     sm_met_sub(&sm_met.inflight, 1);
     release(s, &c->job_bytes, j->charged + sizeof *j);
-    free(j->buf);
+    rmem_free(j->buf, j->buf_cap);
     free(j);
     if (c->state == SM_CONN_OPEN && s->draining) sm_conn_on_writable(s, c);
   }
@@ -832,7 +886,7 @@ static void shed(sm_server *s, sm_conn *c) {
 
 /* Room for c's read buffer to grow as it wants. */
 static int room_for(const sm_server *s, const sm_conn *c) {
-  size_t want = rbuf_next_cap(c) - c->rcap + MALLOC_OVERHEAD;
+  size_t want = rmem_cost(rmem_cap(rbuf_next_cap(c))) - rmem_cost(c->rcap);
   return s->buf_used + want <= s->cfg.buffer_budget;
 }
 

@@ -15,7 +15,8 @@
  *   - Memory (the buffer budget, cfg.buffer_budget, default 1 GiB on top of the cache).
  *     Every byte buffered for a peer is charged to its connection and to s->buf_used: read
  *     buffer capacity, queued answer chunks, and request bodies held by jobs until the job
- *     ends. Three rules keep the total bounded:
+ *     ends, and the connection's own struct and in-flight table while it exists. Three
+ *     rules keep the total bounded:
  *       1. back-pressure: no frame is read or handled while the connection's unsent answers
  *          exceed SM_CONN_WQ_HIGH (SM_CONN_WQ_TIGHT once half the budget is used); the
  *          buffered frames resume when the peer reads. A peer that pipelines without
@@ -82,6 +83,7 @@ typedef struct sm_conn {
   size_t wq_bytes;       /* unsent bytes */
   size_t held;           /* charged to the budget: rcap + the queue's allocations */
   size_t job_bytes;      /* charged to the budget: bodies held by this connection's jobs */
+  size_t own;            /* charged to the budget: this struct and its in-flight table */
   int read_paused;       /* rule 1: answers unread */
   int budget_blocked;    /* rule 2: the read buffer could not grow */
   int backlogged;        /* complete frames wait for the next turn (fairness) */

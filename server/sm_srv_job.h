@@ -44,6 +44,8 @@ typedef struct sm_job {
   uint8_t version;  /* the connection's negotiated version: response layouts and headers */
   uint32_t max_response;
   uint8_t *buf;     /* owned: holds the frame or the body */
+  size_t buf_cap;   /* buf's capacity when it is a stolen read buffer (freed as one: mapped
+                       pages from 64 KiB, sm_srv_conn.c), 0 when malloc'ed */
   const uint8_t *body;
   uint32_t body_len;
   _Atomic int cancel; /* 1 CANCEL or disconnect, 2 drain budget spent */
