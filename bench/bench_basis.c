@@ -6,7 +6,12 @@
  * child's user + system time (getrusage via wait4): on a shared machine it moves less
  * with the load than the wall times do; the load average is printed before and after.
  * Usage: bench_basis [-r reps] [-k k] [--eta e] [--kind lb|elastic] [--holes N [--hole-radius r]]
- *                    [mesh ...]   (default: homerA, headA, koala; both kinds)
+ *                    [--spare N] [mesh ...]   (default: homerA, headA, koala; both kinds)
+ *
+ * --spare N: threads the eigensolver may borrow for its basis products besides the one
+ * it runs on (sm_eigs_opts.spare_threads; default 0). --spare 1 is one basis on both
+ * cores of a 2-core machine, as sm_prepare gives the elastic basis once the LB basis
+ * beside it is done. The bases are the same bit for bit either way.
  *
  * --holes N: each mesh is also run with N holes cut, a scan-like open surface (issue 13:
  * large open meshes are what scanners produce): after cleaning and normalizing (area 1),
@@ -93,8 +98,11 @@ static int cut_holes(sm_mesh **m, int holes, double r, sm_error *err) {
   return SM_OK;
 }
 
+static int spare_opt; /* --spare */
+
 static int run_once(const char *path, int kind, int k, double eta, int holes, double radius,
                     sample *s) {
+  _Atomic int spare = spare_opt;
   sm_error err;
   sm_mesh *raw = NULL, *m = NULL;
   sm_basis *b = NULL;
@@ -108,6 +116,7 @@ static int run_once(const char *path, int kind, int k, double eta, int holes, do
   double t2 = sm_now();
   sm_basis_opts_default(&o, kind, k);
   if (eta > 0 && kind == SM_BASIS_ELASTIC) o.eta = eta;
+  o.spare_threads = &spare;
   if (sm_basis_compute(m, &o, &b, &err)) goto fail;
   double t3 = sm_now();
   if (sm_edges_build(m, &e, &err)) goto fail;
@@ -331,6 +340,7 @@ int main(int argc, char **argv) {
     else if (!strcmp(argv[i], "--eta") && i + 1 < argc) eta = atof(argv[++i]);
     else if (!strcmp(argv[i], "--parallel")) parallel = 1;
     else if (!strcmp(argv[i], "-t") && i + 1 < argc) nthreads = atoi(argv[++i]);
+    else if (!strcmp(argv[i], "--spare") && i + 1 < argc) spare_opt = atoi(argv[++i]);
     else if (!strcmp(argv[i], "--kind") && i + 1 < argc)
       kind = !strcmp(argv[++i], "lb") ? SM_BASIS_LB : SM_BASIS_ELASTIC;
     else if (!strcmp(argv[i], "--holes") && i + 1 < argc) holes = atoi(argv[++i]);
@@ -352,7 +362,8 @@ int main(int argc, char **argv) {
     meshes[nm++] = SM_DATA_DIR "/elasticbasis_cartoon_pairs/headA.obj";
     meshes[nm++] = SM_DATA_DIR "/koala_50k_odedstein/koala.obj.gz";
   }
-  printf("median of %d runs, seconds; peak RSS = max over runs of the child's ru_maxrss\n", reps);
+  printf("median of %d runs, seconds; peak RSS = max over runs of the child's ru_maxrss; "
+         "eigensolver spare threads %d\n", reps, spare_opt);
   print_load("before");
   printf("%-26s %-7s %7s %4s %3s %3s  %6s %6s %6s %6s %7s %6s  %7s %7s %6s %8s\n", "mesh",
          "basis", "verts", "k", "ker", "ok", "load", "clean", "assem", "factor", "eigs", "proj",

@@ -169,7 +169,8 @@ static sm_basis *basis_new(const sm_mesh *m, const sm_basis_opts *o) {
 static int eigs(const sm_csc *A, const double *D, int nev, const sm_basis_opts *o,
                 double *evals, double *evecs, sm_basis_timing *tm, sm_error *err) {
   sm_eigs_opts eo = {.nev = nev, .sigma = -SM_SHIFT_REL * shift_scale(A, D),
-                     .tol = SM_BASIS_EIGS_TOL, .cancel = o->cancel, .cancel_ud = o->cancel_ud};
+                     .tol = SM_BASIS_EIGS_TOL, .cancel = o->cancel, .cancel_ud = o->cancel_ud,
+                     .spare_threads = o->spare_threads};
   sm_eigs_stats st;
   int rc = sm_eigs_smallest(A, D, &eo, evals, evecs, &st, err);
   tm->factorization += st.t_analyze + st.t_factor;

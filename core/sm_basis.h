@@ -24,6 +24,7 @@
 #ifndef SM_BASIS_H
 #define SM_BASIS_H
 
+#include <stdatomic.h>
 #include <stddef.h>
 #include <stdint.h>
 
@@ -50,6 +51,7 @@ typedef struct sm_basis_opts {
   double mu, lambda;
   int (*cancel)(void *ud); /* nonzero = stop; may be NULL */
   void *cancel_ud;
+  _Atomic int *spare_threads; /* threads the eigensolver may borrow (sm_eigs_opts); NULL */
 } sm_basis_opts;
 
 typedef struct sm_basis_timing {

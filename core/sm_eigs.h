@@ -16,7 +16,8 @@
  *   caller-provided outputs; eigenvalues ascending, eigenvectors D-orthonormal.
  *   Re-entrant: no global or static state (CHOLMOD runs on a cholmod_common of the call,
  *   LAPACK/BLAS on the call's buffers), so any number of calls may run in parallel on
- *   different threads; each uses the BLAS threading the caller configured.
+ *   different threads; each uses the BLAS threading the caller configured, plus the
+ *   threads it may borrow (spare_threads).
  *   The cancel callback (may be NULL) is polled once per block step.
  *   Problems too small for the Krylov basis (n < ncv + 2 block) are solved densely.
  *   Errors: SM_EINVAL (sizes), SM_ENOMEM, SM_ENUMERIC (K not positive definite, a LAPACK
@@ -25,6 +26,8 @@
  */
 #ifndef SM_EIGS_H
 #define SM_EIGS_H
+
+#include <stdatomic.h>
 
 #include "sm_error.h"
 #include "sm_sparse.h"
@@ -48,7 +51,19 @@ typedef struct sm_eigs_opts {
   void *cancel_ud;
   int block;        /* vectors per block (0 = automatic: 12, 16 from n = 100,000 on;
                      * at most 64) */
+  /* Threads this call may borrow for the products with its Krylov basis (the block
+   * Gram-Schmidt and the restarts' rotations, half of a large problem's time): each such
+   * product takes up to SM_EIGS_MAX_PARTS - 1 from *spare_threads (atomically) for its
+   * duration and gives them back, so concurrent calls may share one counter. NULL or 0:
+   * the calling thread alone. The rows of those products are split into parts fixed by n
+   * alone (part_rows each, at least), summed in part order: the result is the same bit
+   * for bit whatever the threads. */
+  _Atomic int *spare_threads;
+  int part_rows;    /* rows per part at least (0 = SM_EIGS_PART_ROWS) */
 } sm_eigs_opts;
+
+#define SM_EIGS_MAX_PARTS 8
+#define SM_EIGS_PART_ROWS 16384
 
 typedef struct sm_eigs_stats {
   double t_analyze, t_factor, t_solve; /* seconds: ordering, numeric factor, iteration */

@@ -84,20 +84,29 @@ typedef struct prep_job {
   double t;
 } prep_job;
 
+/* A finished job's thread joins the budget's spare threads (bo.spare_threads), which the
+ * jobs still running borrow for their eigensolvers' basis products. */
 static void *run_job(void *arg) {
   prep_job *j = arg;
   double t0 = sm_now();
   sm_error_clear(&j->err);
   j->rc = sm_basis_compute(j->m, &j->bo, &j->b, &j->err);
   j->t = sm_now() - t0;
+  atomic_fetch_add(j->bo.spare_threads, 1);
   return NULL;
 }
 
-/* Runs the n jobs, at most `threads` at once (the calling thread takes one of each wave).
- * A thread that cannot be started runs its job in the calling thread instead. */
+/* Runs the n jobs, at most `threads` at once (the calling thread takes one of each wave),
+ * the threads of the budget no job runs on spare for them (sm_eigs_opts.spare_threads):
+ * on the koala, the LB basis ends first and the elastic eigensolve then runs its products
+ * on both threads. A thread that cannot be started runs its job in the calling thread
+ * instead. */
 static void run_jobs(prep_job *jobs, int n, int threads) {
+  _Atomic int spare;
+  for (int i = 0; i < n; i++) jobs[i].bo.spare_threads = &spare;
   for (int w = 0; w < n; w += threads) {
     int m = n - w < threads ? n - w : threads;
+    atomic_store(&spare, threads - m);
     pthread_t tid[SM_PREP_MAX_BASES];
     int started[SM_PREP_MAX_BASES] = {0};
     for (int i = 1; i < m; i++) started[i] = !pthread_create(&tid[i], NULL, run_job, &jobs[w + i]);

@@ -26,8 +26,11 @@
  *       a lock that makes other processes wait for this computation) that save releases.
  *       Hooks are called from the calling thread, in spec order.
  *   Threads: o->threads bounds the bases computed at once (1 = one after another, in the
- *     calling thread; more = one thread each, up to that many). BLAS threading is the
- *     caller's business. No global state; re-entrant.
+ *     calling thread; more = one thread each, up to that many), and the threads of that
+ *     budget no basis runs on (fewer bases than threads, or a basis already done) are lent
+ *     to the eigensolvers still running, for their Krylov basis products
+ *     (sm_eigs_opts.spare_threads; the bases are the same bit for bit whatever they get).
+ *     BLAS threading is the caller's business. No global state; re-entrant.
  *   Errors: 0 or a negative SM_E* code with a message: SM_EINVAL (a bad spec or a k the
  *     mesh cannot carry, naming it), SM_ECANCELED (o->cancel), SM_ENOMEM, and those of the
  *     mesh cleaning and sm_basis_compute. *out is NULL on failure.

@@ -172,6 +172,43 @@ static void test_invariant_space(void) {
   free(X);
 }
 
+/* Borrowed threads (sm_eigs_opts.spare_threads) run the basis products' row parts, whose
+ * split depends on n alone: the eigenpairs are the same bit for bit with 0 and 3 spare
+ * threads, every borrowed thread is given back, and the split itself (8 parts against 1)
+ * changes only the rounding. */
+static void test_spare_threads(void) {
+  sm_mesh *m = tm_icosphere(4); /* 2562 vertices: 8 parts of 320 rows */
+  int n = m->nv, k = 40;
+  sm_error err;
+  sm_csc *W = NULL;
+  double *mass = malloc((size_t)n * sizeof *mass);
+  double *ev[3], *X[3];
+  REQUIRE(mass && sm_mesh_lumped_mass(m, mass) == 0 && sm_cotan_stiffness(m, &W, &err) == 0);
+  _Atomic int spare = 3;
+  for (int r = 0; r < 3; r++) {
+    ev[r] = malloc((size_t)k * sizeof **ev);
+    X[r] = malloc((size_t)n * k * sizeof **X);
+    REQUIRE(ev[r] && X[r]);
+    sm_eigs_opts o = {.nev = k, .sigma = -1e-3, .part_rows = r < 2 ? 320 : 0,
+                      .spare_threads = r == 1 ? &spare : NULL};
+    int rc = sm_eigs_smallest(W, mass, &o, ev[r], X[r], NULL, &err);
+    CHECK_MSG(rc == 0, "spare threads, run %d: %s", r, rc ? err.msg : "");
+  }
+  CHECK_MSG(atomic_load(&spare) == 3, "spare threads: %d given back of 3", atomic_load(&spare));
+  CHECK(!memcmp(ev[0], ev[1], (size_t)k * sizeof **ev));
+  CHECK(!memcmp(X[0], X[1], (size_t)n * k * sizeof **X));
+  double dev = 0;
+  for (int j = 0; j < k; j++) dev = fmax(dev, fabs(ev[2][j] - ev[0][j]) / fabs(ev[0][j] + 1));
+  CHECK_MSG(dev < 1e-10, "8 parts against 1: eigenvalues apart by %g", dev);
+  for (int r = 0; r < 3; r++) {
+    free(ev[r]);
+    free(X[r]);
+  }
+  sm_csc_destroy(W);
+  free(mass);
+  sm_mesh_destroy(m);
+}
+
 static void test_repeated_eigenvalues(void) {
   sm_mesh *m = tm_icosphere(3); /* 642 vertices: a dense reference is cheap */
   check_repeated(m, "icosphere");
@@ -434,6 +471,7 @@ int main(void) {
   test_lb_sphere();
   test_repeated_eigenvalues();
   test_invariant_space();
+  test_spare_threads();
   test_elastic_kernel();
   test_elastic_open_holes();
   check_invariance(SM_BASIS_LB);
