@@ -182,6 +182,10 @@ static int cmd_basis(int argc, char **argv) {
   sm_basis_opts o;
   sm_basis_opts_default(&o, kind, k);
   if (eta > 0) o.eta = eta;
+  /* One basis on the machine: the second core takes half of the eigensolver's basis
+   * products (the koala's elastic basis: 12.7 -> 10.4 s, docs/PERFORMANCE.md). */
+  _Atomic int spare = 1;
+  o.spare_threads = &spare;
   sm_basis *b = NULL;
   sm_error err;
   double t0 = sm_now();
