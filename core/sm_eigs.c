@@ -822,8 +822,10 @@ int sm_eigs_smallest(const sm_csc *A, const double *D, const sm_eigs_opts *o, do
   rc = factor(&sv, A, D, o->sigma, st, err);
   prefault_join(&pf);
   if (rc) goto done;
-  sizes(o, n, st->factor_nnz / n, &b, &mmax, &keep);
-  if (!early && (rc = bks_alloc(&w, n, o->nev, b, mmax, keep, row_parts(o, n)))) goto nomem;
+  if (!early) {
+    sizes(o, n, st->factor_nnz / n, &b, &mmax, &keep);
+    if ((rc = bks_alloc(&w, n, o->nev, b, mmax, keep, row_parts(o, n)))) goto nomem;
+  }
   w.spare = o->spare_threads;
   double t0 = sm_now();
   rc = run_bks(&sv, &w, o, st, err);
