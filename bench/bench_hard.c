@@ -29,6 +29,8 @@
  *                   [--match-threads N] (threads of each match, sm_match_opts.threads;
  *                   with --threads 1, the time of one match using N cores)
  *                   [--only A-B,C-D] (only these pairs of the lists, by name)
+ *                   [--save-maps DIR] (each pair's map as DIR/NAME.map, the format of
+ *                   shared/tools/eval_map.py: one 0-based target vertex per source vertex)
  * Exit: 0, 1 on a failure, 77 when ../shared/data is absent.
  */
 #define _POSIX_C_SOURCE 200809L
@@ -74,6 +76,7 @@ typedef struct bench_cfg {
   double ext_below, bijective; /* bijective < 0: the product's default */
   double anchor;                /* < 0: the product's default */
   int match_threads;            /* sm_match_opts.threads of each match; 0: the default */
+  const char *save_maps;        /* directory for each pair's map (input vertices), or NULL */
 } bench_cfg;
 
 /* ---- shapes, with their bases cached on disk ----------------------------------------- */
@@ -263,6 +266,19 @@ static void trace_tip(void *ud, int h, const sm_match_result *r, double score) {
   fflush(stdout);
 }
 
+/* The map as eval_map.py reads it: one 0-based target vertex per source vertex. */
+static void save_map(const char *dir, const hard_pair *p, const int32_t *map, int32_t n) {
+  char path[1500];
+  snprintf(path, sizeof path, "%s/%s.map", dir, p->name);
+  FILE *f = fopen(path, "w");
+  if (!f) {
+    fprintf(stderr, "bench_hard: cannot write %s\n", path);
+    return;
+  }
+  for (int32_t i = 0; i < n; i++) fprintf(f, "%d\n", (int)map[i]);
+  fclose(f);
+}
+
 static int run_pair(const bench_cfg *c, hard_pair *p, sm_error *err) {
   bench_raw_pair L = {0};
   sm_shape *sx = NULL, *sy = NULL;
@@ -298,6 +314,7 @@ static int run_pair(const bench_cfg *c, hard_pair *p, sm_error *err) {
       if (map[i] < 0) map[i] = 0;
     rc = sm_geodesic_errors(L.rawy, map, L.rawx->nv, L.gt, 1, e, err);
   }
+  if (!rc && c->save_maps) save_map(c->save_maps, p, map, L.rawx->nv);
   if (!rc) {
     sm_geo_stats gs;
     rc = sm_geo_summarize(e, L.gt->n, &gs, err);
@@ -482,7 +499,7 @@ static void usage(void) {
                   "[--threads N] [--json OUT] [--limit N] [--global 0|1] [--multi-start] "
                   "[--k1 K] [--analyze] [--trace-tips] [--extremities 0|1|2] [--ext-below C] "
                   "[--ext-hypotheses H] [--bijective W] [--anchor W] [--match-threads N] "
-                  "[--only PAIR,PAIR]\n");
+                  "[--only PAIR,PAIR] [--save-maps DIR]\n");
 }
 
 int main(int argc, char **argv) {
@@ -508,6 +525,7 @@ int main(int argc, char **argv) {
     else if (!strcmp(a, "--anchor") && v) cfg.anchor = atof(argv[++i]);
     else if (!strcmp(a, "--match-threads") && v) cfg.match_threads = atoi(argv[++i]);
     else if (!strcmp(a, "--only") && v) only_pairs = argv[++i];
+    else if (!strcmp(a, "--save-maps") && v) cfg.save_maps = argv[++i];
     else if (!strcmp(a, "--multi-start")) cfg.multi_start = 1;
     else if (!strcmp(a, "--analyze")) cfg.analyze = 1;
     else if (!strcmp(a, "--trace-tips")) cfg.trace_tips = 1;
