@@ -29,6 +29,7 @@
  *                   [--match-threads N] (threads of each match, sm_match_opts.threads;
  *                   with --threads 1, the time of one match using N cores)
  *                   [--only A-B,C-D] (only these pairs of the lists, by name)
+ *                   [--final-choice 0|1] (sm_match_opts.final_choice; default: the product's)
  *                   [--save-maps DIR] (each pair's map as DIR/NAME.map, the format of
  *                   shared/tools/eval_map.py: one 0-based target vertex per source vertex)
  * Exit: 0, 1 on a failure, 77 when ../shared/data is absent.
@@ -77,6 +78,7 @@ typedef struct bench_cfg {
   double anchor;                /* < 0: the product's default */
   int match_threads;            /* sm_match_opts.threads of each match; 0: the default */
   const char *save_maps;        /* directory for each pair's map (input vertices), or NULL */
+  int final_choice;             /* < 0: the product's default */
 } bench_cfg;
 
 /* ---- shapes, with their bases cached on disk ----------------------------------------- */
@@ -189,6 +191,7 @@ static void match_options(const bench_cfg *c, sm_match_opts *o) {
   if (c->k1 > 0) o->k1 = c->k1;
   if (c->bijective >= 0) o->bijective = c->bijective;
   if (c->anchor >= 0) o->anchor = c->anchor;
+  if (c->final_choice >= 0) o->final_choice = c->final_choice;
   if (c->match_threads > 0) o->threads = c->match_threads;
   o->want_yx = 1;
 }
@@ -499,13 +502,13 @@ static void usage(void) {
                   "[--threads N] [--json OUT] [--limit N] [--global 0|1] [--multi-start] "
                   "[--k1 K] [--analyze] [--trace-tips] [--extremities 0|1|2] [--ext-below C] "
                   "[--ext-hypotheses H] [--bijective W] [--anchor W] [--match-threads N] "
-                  "[--only PAIR,PAIR] [--save-maps DIR]\n");
+                  "[--only PAIR,PAIR] [--save-maps DIR] [--final-choice 0|1]\n");
 }
 
 int main(int argc, char **argv) {
   bench_cfg cfg = {.cache = "bench-cache", .global = -1, .extremities = -1,
                    .ext_below = -1, .bijective = -1,
-                   .anchor = -1};
+                   .anchor = -1, .final_choice = -1};
   const char *sets_arg = NULL, *json = NULL;
   int threads = 2, limit = 0;
   for (int i = 1; i < argc; i++) {
@@ -526,6 +529,7 @@ int main(int argc, char **argv) {
     else if (!strcmp(a, "--match-threads") && v) cfg.match_threads = atoi(argv[++i]);
     else if (!strcmp(a, "--only") && v) only_pairs = argv[++i];
     else if (!strcmp(a, "--save-maps") && v) cfg.save_maps = argv[++i];
+    else if (!strcmp(a, "--final-choice") && v) cfg.final_choice = atoi(argv[++i]);
     else if (!strcmp(a, "--multi-start")) cfg.multi_start = 1;
     else if (!strcmp(a, "--analyze")) cfg.analyze = 1;
     else if (!strcmp(a, "--trace-tips")) cfg.trace_tips = 1;

@@ -38,7 +38,11 @@
  *     refined once more, ZoomOut from k0 in its bijective form (sm_fmap.h: the Y -> X map
  *     is fitted too and both point maps come from one nearest-neighbour problem), in the
  *     hybrid basis when the refinement basis is elastic (opts.final_hybrid). Tip
- *     hypotheses are judged before it; only the kept map pays for it.
+ *     hypotheses are judged before it; only the kept map pays for it. The LB functions
+ *     weigh SM_MATCH_FINAL_LB_WEIGHT there: more weight serves human pairs and costs the
+ *     cartoon heads, which need the elastic basis. So a doubtful map is refined at both
+ *     weights and the more confident result kept (opts.final_choice): the pipeline
+ *     chooses by the confidence, not by a per-dataset switch.
  *   confidence (every result; sm_confidence.h): max(0, orientation) x continuity x cycle
  *     consistency of the final maps, in [0, 1], from the shapes and maps alone.
  *
@@ -122,6 +126,9 @@ typedef struct sm_match_opts {
   double bijective; /* the bijective pass's weight (see above); default 1, 0 = off */
   int final_hybrid; /* 1 (default): with the elastic basis, the bijective pass refines in
                        the hybrid basis (LB functions beside the elastic ones) */
+  int final_choice; /* 1 (default): a doubtful map (the one the tip search ran for) also
+                       gets the hybrid pass with LB weight 1, and the more confident of the
+                       two maps is kept (see "bijective pass" above); 0 = one pass */
   int orientation_fix; /* try the other orientation when the result looks mirrored */
   int multi_start;  /* also refine from the other init, keep the smoother map (see below) */
   int global;       /* 1: global hypothesis search (see above); 2: also orderings */
