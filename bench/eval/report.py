@@ -409,6 +409,7 @@ The last stage, 2026-11-28 (man -> woman's 0.036 against the 0.03 target). Every
   - the four tuned pairs unchanged (0.0177: none is doubtful);
   - AUROC 0.999.
   - Median time of a doubtful pair, two pairs at a time: 6.4 -> 8.0 s, with a test build sharing the machine for part of the run.
+- Tried as a third candidate, not kept: the final pass in the LB basis alone. Chosen by confidence among the three: man -> woman 0.0328 -> 0.0317, but within-class 0.0183 -> 0.0187 and gorilla 0.1517 -> 0.1572. That pass alone gives gorilla 0.1676 (5 pairs above 0.25) and within-class 0.0232.
 - Speed on this session's machine, with the same code: homer 2.08-2.10 s with 2 threads (the 1.62 s of 2026-11-27 was measured on another machine of this kind).
 """
 
