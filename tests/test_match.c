@@ -46,13 +46,22 @@ static sm_mesh *blob(int subdiv) {
   return m;
 }
 
+/* The 642-vertex blob and a copy p with its vertices renumbered: vertex j of p is vertex
+ * perm[j] of the blob (perm allocated here, freed by the caller). */
+static sm_mesh *blob_and_permuted(uint64_t seed, int32_t **perm, sm_mesh **p) {
+  sm_mesh *m = blob(3);
+  *perm = malloc((size_t)m->nv * sizeof **perm);
+  REQUIRE(*perm != NULL);
+  tm_permutation(*perm, m->nv, seed);
+  *p = tm_permuted(m, *perm);
+  return m;
+}
+
 /* Copy p of m: vertex j of p is vertex perm[j] of m, moved by a rotation, translation and a
  * scale of 3.7 (so sm_mesh_normalize has something to undo). */
 static void self_match_case(int basis, int init) {
-  sm_mesh *m = blob(3); /* 642 vertices */
-  int32_t *perm = malloc((size_t)m->nv * sizeof *perm);
-  tm_permutation(perm, m->nv, 99);
-  sm_mesh *p = tm_permuted(m, perm);
+  int32_t *perm;
+  sm_mesh *p, *m = blob_and_permuted(99, &perm, &p);
   const double t[3] = {1.5, -2.0, 0.3};
   tm_rigid(p, 0.7, 2.1, -0.4, 3.7, t);
   sm_shape *x = prepare(m, 40), *y = prepare(p, 40);
@@ -81,10 +90,8 @@ static void self_match_case(int basis, int init) {
  * pass at two LB weights and the more confident result; so its confidence is at least the
  * one pass's, and the map stays right. Run under the sanitizers too (copy, swap, free). */
 static void test_final_choice(void) {
-  sm_mesh *m = blob(3);
-  int32_t *perm = malloc((size_t)m->nv * sizeof *perm);
-  tm_permutation(perm, m->nv, 5);
-  sm_mesh *p = tm_permuted(m, perm);
+  int32_t *perm;
+  sm_mesh *p, *m = blob_and_permuted(5, &perm, &p);
   sm_shape *x = prepare(m, 40), *y = prepare(p, 40);
   sm_match_result r[2];
   for (int c = 0; c < 2; c++) {
@@ -264,10 +271,8 @@ static int same_maps(const sm_match_result *a, const sm_match_result *b) {
 }
 
 static void test_shape_cache(void) {
-  sm_mesh *m = blob(3);
-  int32_t *perm = malloc((size_t)m->nv * sizeof *perm);
-  tm_permutation(perm, m->nv, 7);
-  sm_mesh *p = tm_permuted(m, perm);
+  int32_t *perm;
+  sm_mesh *p, *m = blob_and_permuted(7, &perm, &p);
   sm_shape *x = prepare(m, 30), *y = prepare(p, 30);
   cache_job j[2] = {{x, y, {0}, -1}, {x, y, {0}, -1}};
   pthread_t th;
