@@ -69,6 +69,7 @@ typedef struct hard_pair {
   double err_mean, err_max, confidence, orientation, continuity, cycle, distortion, turns, t_init,
       t_refine, t_total;
   int flipped, hypothesis, ext_tried, ext_hypothesis;
+  double final_lb_weight; /* sm_match_result.final_lb_weight */
 } hard_pair;
 
 typedef struct bench_cfg {
@@ -335,6 +336,7 @@ static int run_pair(const bench_cfg *c, hard_pair *p, sm_error *err) {
     p->hypothesis = r.hypothesis;
     p->ext_tried = r.ext_tried;
     p->ext_hypothesis = r.ext_hypothesis;
+    p->final_lb_weight = r.final_lb_weight;
   }
   free(map);
   free(e);
@@ -370,10 +372,11 @@ static void *worker(void *arg) {
     pthread_mutex_lock(&w->lock);
     if (p->ok)
       printf("%-9s %-28s err %.4f  max %.3f  conf %.3f  orient %+.2f cont %.3f cyc %.3f  hyp %2d%s  "
-             "tips %d/%d  init %.2f s  refine %.2f s  total %.2f s\n",
+             "tips %d/%d  lbw %.1f  init %.2f s  refine %.2f s  total %.2f s\n",
              p->set, p->name, p->err_mean, p->err_max, p->confidence, p->orientation,
              p->continuity, p->cycle, p->hypothesis, p->flipped ? " flip" : "",
-             p->ext_hypothesis, p->ext_tried, p->t_init, p->t_refine, p->t_total);
+             p->ext_hypothesis, p->ext_tried, p->final_lb_weight, p->t_init, p->t_refine,
+             p->t_total);
     else
       printf("%-9s %-28s FAILED: %s\n", p->set, p->name, p->error);
     fflush(stdout);
@@ -467,6 +470,7 @@ static void write_json(const char *path, const bench_cfg *c, const hard_pair *P,
       jnum(f, "turns", p->turns, 1);
       fprintf(f, "\"hypothesis\": %d, \"flipped\": %d, ", p->hypothesis, p->flipped);
       fprintf(f, "\"ext_tried\": %d, \"ext_hypothesis\": %d, ", p->ext_tried, p->ext_hypothesis);
+      fprintf(f, "\"final_lb_weight\": %g, ", p->final_lb_weight);
       jnum(f, "t_init", p->t_init, 1);
       jnum(f, "t_refine", p->t_refine, 1);
       jnum(f, "t_total", p->t_total, 0);

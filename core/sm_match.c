@@ -755,6 +755,7 @@ static int bijective_pass(const sm_shape *x, const sm_shape *y, const sm_match_o
   int widen = o->final_hybrid && o->basis == SM_MATCH_ELASTIC;
   int rc = refine(x, y, o, widen ? SM_MATCH_HYBRID : o->basis, widen ? lb_weight : 1.0,
                   o->bijective, res->T, res->C, res->T_yx, err);
+  res->final_lb_weight = widen ? lb_weight : 0;
   res->t_refine += sm_now() - t0;
   if (!rc) res->orientation = sm_map_orientation_score(x->mesh, y->mesh, res->T);
   if (!rc) rc = sm_map_dirichlet(x->mesh, y->mesh, res->T, &res->dirichlet, err);

@@ -180,6 +180,9 @@ typedef struct sm_match_result {
                                tip search only */
   double t_init, t_refine;  /* seconds; t_init includes the tip search, t_refine is the
                                winning map's refinement */
+  double final_lb_weight;   /* the LB functions' weight in the hybrid final pass that made
+                               T (SM_MATCH_FINAL_LB_WEIGHT, or 1 when final_choice kept that
+                               pass's map); 0 = no hybrid final pass */
 } sm_match_result;
 
 void sm_match_opts_default(sm_match_opts *o);
