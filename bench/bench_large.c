@@ -30,12 +30,12 @@
  *   vertices (fine vertex -> its coarse vertex -> the coarse image -> the fine vertex leaning
  *   most on it): when that is as bad as the final map, the coarse match failed, not the
  *   transfer. --tips, --multi-start (match options), --max-aspect, --coarse-tips,
- *   --fine-iters (multires options) vary one setting for A/B runs.
+ *   --fine-iters, --snap (multires options) vary one setting for A/B runs.
  *
  * usage: bench_large [--reps N] [--direct] [--small] [--small-levels N,N,..] [--pair NAME]
  *                    [--no-small-direct] [--only koala|dragon|small] [--coarse N]
  *                    [--decimate] [--diag] [--tips 0|1|2] [--multi-start 0|1]
- *                    [--max-aspect B] [--coarse-tips 0|1] [--fine-iters N]
+ *                    [--max-aspect B] [--coarse-tips 0|1] [--fine-iters N] [--snap N]
  */
 #define _GNU_SOURCE
 #include <stdint.h>
@@ -66,6 +66,7 @@ typedef struct spec {
 } spec;
 
 static int g_fine_iters = -1; /* --fine-iters: multires fine refits (-1 = default) */
+static int g_snap = -1;       /* --snap: multires fine snap sweeps (-1 = default) */
 static int g_diag;            /* --diag: a line of the coarse match's figures per case */
 static double g_max_aspect;  /* --max-aspect: the decimation's bound (0 = default) */
 static int g_coarse_tips = -1; /* --coarse-tips 0|1: sm_multires_opts.coarse_tips */
@@ -227,6 +228,7 @@ static void run_child(const spec *s, outcome *o) {
     ro.mode = SM_MULTIRES_ON;
     if (s->coarse_nv) ro.coarse_nv = s->coarse_nv;
     if (g_fine_iters >= 0) ro.fine_iters = g_fine_iters;
+    if (g_snap >= 0) ro.snap_iters = g_snap;
     if (g_max_aspect > 0) ro.max_aspect = g_max_aspect;
     if (g_coarse_tips >= 0) ro.coarse_tips = g_coarse_tips;
     sm_multires_shape *x = NULL, *y = NULL;
@@ -529,6 +531,7 @@ int main(int argc, char **argv) {
     else if (!strcmp(argv[i], "--max-aspect") && i + 1 < argc) g_max_aspect = atof(argv[++i]);
     else if (!strcmp(argv[i], "--coarse-tips") && i + 1 < argc) g_coarse_tips = atoi(argv[++i]);
     else if (!strcmp(argv[i], "--fine-iters") && i + 1 < argc) g_fine_iters = atoi(argv[++i]);
+    else if (!strcmp(argv[i], "--snap") && i + 1 < argc) g_snap = atoi(argv[++i]);
     else if (!strcmp(argv[i], "--small")) small = 1;
     else if (!strcmp(argv[i], "--decimate")) decimate = 1;
     else if (!strcmp(argv[i], "--small-levels") && i + 1 < argc) {
@@ -544,7 +547,7 @@ int main(int argc, char **argv) {
       fprintf(stderr, "usage: bench_large [--reps N] [--direct] [--small] [--small-levels N,N,..] "
                       "[--pair NAME] [--no-small-direct] [--only koala|dragon|small] "
                       "[--coarse N] [--decimate] [--diag] [--tips 0|1|2] [--multi-start 0|1] "
-                      "[--max-aspect B] [--coarse-tips 0|1] [--fine-iters N]\n");
+                      "[--max-aspect B] [--coarse-tips 0|1] [--fine-iters N] [--snap N]\n");
       return 2;
     }
   }

@@ -23,6 +23,7 @@ void sm_multires_opts_default(sm_multires_opts *o) {
   o->fine_iters = SM_MULTIRES_FINE_ITERS;
   o->max_aspect = SM_MULTIRES_MAX_ASPECT;
   o->coarse_tips = SM_MULTIRES_COARSE_TIPS;
+  o->snap_iters = SM_MULTIRES_SNAP_ITERS;
 }
 
 int sm_multires_wanted(const sm_multires_opts *o, int32_t nv_x, int32_t nv_y) {
@@ -33,7 +34,7 @@ int sm_multires_wanted(const sm_multires_opts *o, int32_t nv_x, int32_t nv_y) {
 
 static int check_mopts(const sm_multires_opts *o, sm_error *err) {
   if (o->mode < SM_MULTIRES_AUTO || o->mode > SM_MULTIRES_OFF || o->coarse_nv < 200 ||
-      o->ring < 1 || o->threshold < 0 || o->fine_iters < 0 || !(o->max_aspect >= 1.5) ||
+      o->ring < 1 || o->threshold < 0 || o->fine_iters < 0 || o->snap_iters < 0 || !(o->max_aspect >= 1.5) ||
       !isfinite(o->max_aspect) || (o->coarse_tips != 0 && o->coarse_tips != 1))
     return sm_error_set(err, SM_EINVAL, "multires: mode %d, coarse_nv %d (>= 200), ring %d "
                         "(>= 1), threshold %d (>= 0), fine_iters %d (>= 0), max_aspect %g "
@@ -636,6 +637,65 @@ static int fine_refine(const sm_multires_shape *x, const sm_multires_shape *y,
   return rc;
 }
 
+/* ---- the fine snap ------------------------------------------------------------------------ */
+
+/* sum over the fine neighbours j of i of (|y_c - y_T(j)| - lx_ij)^2, lx = X's edge lengths
+ * in the neighbour order of xp/xi: how far putting i's image on c breaks the lengths of
+ * i's edges. An exact map of a mesh onto a copy of itself scores 0. */
+static double snap_cost(const sm_mesh *my, const int32_t *xp, const int32_t *xi,
+                        const double *lx, const int32_t *T, int32_t i, int32_t c) {
+  const double *pc = my->V + 3 * (size_t)c;
+  double cost = 0;
+  for (int32_t e = xp[i]; e < xp[i + 1]; e++) {
+    double ly = sqrt(sm_knn_dist2(pc, my->V + 3 * (size_t)T[xi[e]], 3)) - lx[e];
+    cost += ly * ly;
+  }
+  return cost;
+}
+
+/* Jacobi sweeps (each reads the previous sweep's map), so the result does not depend on
+ * the vertex order; a sweep revisits only the vertices whose own image or a neighbour's
+ * moved in the sweep before (the others' costs are unchanged). */
+int sm_multires_snap(const sm_mesh *mx, const sm_mesh *my, int iters, int32_t *T,
+                     sm_error *err) {
+  if (iters <= 0) return SM_OK;
+  int32_t *xp = NULL, *xi = NULL, *yp = NULL, *yi = NULL, n = mx->nv;
+  int32_t *prev = malloc((size_t)n * sizeof *prev);
+  uint8_t *todo = malloc((size_t)n), *moved = calloc((size_t)n, 1);
+  double *lx = NULL;
+  int rc = SM_OK;
+  if (!prev || !todo || !moved || vertex_neighbours(mx, &xp, &xi) ||
+      vertex_neighbours(my, &yp, &yi) || !(lx = malloc((size_t)xp[n] * sizeof *lx)))
+    rc = sm_error_set(err, SM_ENOMEM, "multires snap: out of memory");
+  for (int32_t i = 0; !rc && i < n; i++)
+    for (int32_t e = xp[i]; e < xp[i + 1]; e++)
+      lx[e] = sqrt(sm_knn_dist2(mx->V + 3 * (size_t)i, mx->V + 3 * (size_t)xi[e], 3));
+  if (!rc) memset(todo, 1, (size_t)n);
+  int64_t nmoved = 1;
+  for (int it = 0; !rc && nmoved && it < iters; it++) {
+    memcpy(prev, T, (size_t)n * sizeof *prev);
+    nmoved = 0;
+    for (int32_t i = 0; i < n; i++) {
+      moved[i] = 0;
+      if (!todo[i]) continue;
+      int32_t t = prev[i];
+      double best = snap_cost(my, xp, xi, lx, prev, i, t);
+      for (int32_t e = yp[t]; e < yp[t + 1]; e++) {
+        double c = snap_cost(my, xp, xi, lx, prev, i, yi[e]);
+        if (c < best) best = c, T[i] = yi[e];
+      }
+      moved[i] = T[i] != t;
+      nmoved += moved[i];
+    }
+    for (int32_t i = 0; i < n; i++) {
+      todo[i] = moved[i];
+      for (int32_t e = xp[i]; !todo[i] && e < xp[i + 1]; e++) todo[i] = moved[xi[e]];
+    }
+  }
+  free(prev), free(todo), free(moved), free(lx), free(xp), free(xi), free(yp), free(yi);
+  return rc;
+}
+
 /* ---- matching --------------------------------------------------------------------------- */
 
 void sm_multires_result_free(sm_multires_result *r) {
@@ -739,6 +799,8 @@ int sm_multires_match(const sm_multires_shape *x, const sm_multires_shape *y,
     rc = fine_refine(x, y, bx, by, k, res->coarse.T, mo, o, Exf, Eyf, res->T, err);
   if (!rc)
     rc = extract(&sy, &sx, res->coarse.T_yx, k, mo->ring, o->cancel, o->cancel_ud, res->T_yx, err);
+  if (!rc) rc = sm_multires_snap(x->mesh, y->mesh, mo->snap_iters, res->T, err);
+  if (!rc) rc = sm_multires_snap(y->mesh, x->mesh, mo->snap_iters, res->T_yx, err);
   free(Exf);
   free(Eyf);
   sm_confidence c;

@@ -6,6 +6,8 @@
  *   - the coarse level does not depend on the vertex order (a permuted copy gets the very
  *     same coarse mesh), and a permuted copy forced through the path is matched exactly;
  *   - a non-manifold mesh (a fin on an edge), which sm_mesh_decimate refuses, is prepared;
+ *   - the fine snap: an exact map stays, one-edge offsets go back (onto the mesh and onto a
+ *     stretched copy of it);
  *   - options: auto threshold, forced modes, invalid values;
  *   - data (skipped without ../shared/data, and under SM_TEST_SYNTHETIC_ONLY as test_match):
  *     homerA against its permuted copy forced through the path, >= 99% exact.
@@ -165,6 +167,48 @@ static void test_permuted(const sm_mesh *m, int32_t coarse_nv, const char *name,
   sm_mesh_destroy(pm);
 }
 
+/* The fine snap (sm_multires_snap) on a blob and on a copy of it stretched 1.15x along x
+ * and shrunk along y (same connectivity, area about kept, not an isometry): the identity
+ * is left alone on the blob itself, and an identity map with every fourth vertex moved to
+ * a neighbour (about the share the prolonged extraction gets wrong) is put back. */
+static void test_snap(void) {
+  sm_mesh *a = NULL, *b = NULL;
+  const double one[3] = {1, 1, 1};
+  sm_error err;
+  REQUIRE(sm_synth_blob(4, 0.2, 3, one, &a, &err) == 0);
+  REQUIRE(sm_mesh_alloc(a->nv, a->nf, NULL, &b, &err) == 0);
+  memcpy(b->F, a->F, (size_t)3 * a->nf * sizeof *a->F);
+  for (int32_t v = 0; v < a->nv; v++) {
+    b->V[3 * v] = 1.15 * a->V[3 * v];
+    b->V[3 * v + 1] = a->V[3 * v + 1] / 1.15;
+    b->V[3 * v + 2] = a->V[3 * v + 2];
+  }
+  int32_t n = a->nv, *T = malloc((size_t)n * sizeof *T), moved = 0;
+  for (int32_t v = 0; v < n; v++) T[v] = v;
+  REQUIRE(sm_multires_snap(a, a, 10, T, &err) == 0);
+  for (int32_t v = 0; v < n; v++) moved += T[v] != v;
+  CHECK_MSG(moved == 0, "snap moved %d vertices of an exact self-map", moved);
+  const sm_mesh *targets[2] = {a, b};
+  for (int t = 0; t < 2; t++) {
+    int32_t off = 0, exact = 0;
+    for (int32_t v = 0; v < n; v++) T[v] = v;
+    for (int32_t f = 0; f < a->nf; f++) { /* every fourth vertex one edge off */
+      int32_t v = a->F[3 * f], w = a->F[3 * f + 1];
+      if (v % 4 == 0 && T[v] == v) T[v] = w, off++;
+    }
+    REQUIRE(sm_multires_snap(a, targets[t], 10, T, &err) == 0);
+    for (int32_t v = 0; v < n; v++) exact += T[v] == v;
+    fprintf(stderr, "snap onto %s: %d of %d vertices one edge off, %d exact after\n",
+            t ? "the stretched copy" : "itself", off, n, exact);
+    CHECK_MSG(off > n / 10, "only %d vertices moved off", off);
+    CHECK_MSG(exact >= 0.99 * n, "snap onto %s: %d of %d exact", t ? "stretched" : "itself",
+              exact, n);
+  }
+  free(T);
+  sm_mesh_destroy(a);
+  sm_mesh_destroy(b);
+}
+
 /* An icosphere with a fin: a triangle on an existing edge makes it non-manifold. */
 static void test_nonmanifold(void) {
   sm_mesh *s = tm_icosphere(4), *m;
@@ -289,6 +333,7 @@ int main(int argc, char **argv) {
   test_prolongation();
   test_nonmanifold();
   test_proxy_aspect();
+  test_snap();
   sm_mesh *blob = NULL;
   const double one[3] = {1, 1, 1};
   sm_error err;
