@@ -18,6 +18,7 @@
 #include <cblas.h> /* OpenBLAS: openblas_set_num_threads */
 #include <dirent.h>
 #include <errno.h>
+#include <pthread.h>
 #include <signal.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -552,6 +553,44 @@ static void match_run_free(match_run *mr) {
   sm_multires_shape_destroy(mr->my);
 }
 
+/* One shape's coarse level, for prepare_multires_pair. */
+typedef struct multires_prep {
+  const sm_mesh *raw;
+  const sm_prep_opts *po;
+  const sm_multires_opts *ro;
+  sm_multires_shape *out;
+  sm_error err;
+  int rc;
+} multires_prep;
+
+static void *prepare_multires_one(void *arg) {
+  multires_prep *j = arg;
+  j->rc = sm_prepare_multires(j->raw, j->po, j->ro, &j->out, NULL, &j->err);
+  return NULL;
+}
+
+/* Both shapes' coarse levels at once, one thread each with one basis at a time (the CLI's
+ * two threads): clean, decimation and location are sequential per shape, so two shapes
+ * side by side take about half the wall time of one after the other (koala, 50k
+ * vertices: docs/RESULTS.md section 7). Without a second thread, one after the other. */
+static int prepare_multires_pair(const match_args *m, const sm_mesh *ra, const sm_mesh *rb,
+                                 match_run *mr) {
+  sm_prep_opts po;
+  local_prep_opts(&m->so, &po);
+  po.threads = 1;
+  multires_prep j[2] = {{.raw = ra, .po = &po, .ro = &m->ro}, {.raw = rb, .po = &po, .ro = &m->ro}};
+  pthread_t th;
+  int threaded = !pthread_create(&th, NULL, prepare_multires_one, &j[1]);
+  prepare_multires_one(&j[0]);
+  if (threaded) pthread_join(th, NULL);
+  else prepare_multires_one(&j[1]);
+  mr->mx = j[0].out;
+  mr->my = j[1].out;
+  if (j[0].rc) return fail(m->a, &j[0].err);
+  if (j[1].rc) return fail(m->b, &j[1].err);
+  return 0;
+}
+
 /* The multi-resolution path (sm_multires.h) when --multires and the sizes ask for it:
  * returns 1 when it ran (its status in *rc), 0 for the direct path. The result is moved
  * into mr->r as sm_match would give it: the fine maps and their orientation, confidence
@@ -567,13 +606,8 @@ static int run_multires(match_args *m, match_run *mr, int *rc) {
   }
   int want = sm_multires_wanted(&m->ro, ra->nv, rb->nv);
   if (want) {
-    sm_prep_opts po;
-    local_prep_opts(&m->so, &po);
-    progress("building the coarse level of %s ...", m->a);
-    *rc = sm_prepare_multires(ra, &po, &m->ro, &mr->mx, NULL, &err) ? fail(m->a, &err) : 0;
-    progress("building the coarse level of %s ...", m->b);
-    if (!*rc)
-      *rc = sm_prepare_multires(rb, &po, &m->ro, &mr->my, NULL, &err) ? fail(m->b, &err) : 0;
+    progress("%s", "building the coarse levels of both shapes ...");
+    *rc = prepare_multires_pair(m, ra, rb, mr);
     progress("%s", "");
   }
   sm_mesh_destroy(ra);
