@@ -46,8 +46,10 @@
 
 #include "bench_util.h"
 #include "sm_coarse.h"
+#include "sm_confidence.h"
 #include "sm_eigs.h"
 #include "sm_global.h"
+#include "sm_knn.h"
 #include "sm_match.h"
 #include "sm_meshio.h"
 #include "sm_metrics.h"
@@ -252,21 +254,45 @@ static void analyze(const hard_pair *p, const bench_raw_pair *L, const sm_shape 
   sm_global_free(h, nh);
 }
 
-/* --trace-tips: every map the tip search judges (h = 0: the descriptor start's), its
- * score and true error (design data for the search; never used by the product). */
+/* --trace-tips: every map the tip search judges (h = 0: the descriptor start's; h = -1:
+ * the kept one refined anchored, with how far it moved from the kept map), its score and
+ * true error (design data for the search; never used by the product). */
 typedef struct tip_trace {
   const hard_pair *p;
   const bench_raw_pair *L;
   const sm_shape *sx, *sy;
+  int32_t *best;     /* the best-scored hypothesis map so far (what the search keeps) */
+  double best_score;
 } tip_trace;
 
+/* How far the anchored map moved from the kept one (target positions, unit area): mean
+ * displacement and the share of vertices moved by more than SM_CONFIDENCE_TAU. */
+static void trace_moved(const tip_trace *t, const int32_t *T, double *mean, double *far) {
+  const sm_mesh *my = t->sy->mesh;
+  int32_t n = t->sx->mesh->nv, nfar = 0;
+  double sum = 0;
+  for (int32_t i = 0; i < n; i++) {
+    double d = sqrt(sm_knn_dist2(my->V + 3 * (size_t)T[i], my->V + 3 * (size_t)t->best[i], 3));
+    sum += d;
+    nfar += d > SM_CONFIDENCE_TAU;
+  }
+  *mean = sum / n;
+  *far = (double)nfar / n;
+}
+
 static void trace_tip(void *ud, int h, const sm_match_result *r, double score) {
-  const tip_trace *t = ud;
+  tip_trace *t = ud;
   sm_error err = {0};
-  double e = map_error(t->L, t->sx, t->sy, r->T, &err);
+  double e = map_error(t->L, t->sx, t->sy, r->T, &err), mean = 0, far = 0;
+  if (h < 0) trace_moved(t, r->T, &mean, &far);
+  else if (h == 0 || score > t->best_score) {
+    memcpy(t->best, r->T, (size_t)t->sx->mesh->nv * sizeof *t->best);
+    t->best_score = score;
+  }
   printf("TIP %s %s %d err %.4f score %.4f cont %.4f orient %+.4f turns %.4f distort %.4f "
-         "cycle %.4f conf %.4f\n", t->p->set, t->p->name, h, e, score, r->continuity,
-         r->orientation, r->turns, r->distortion, r->cycle, r->confidence);
+         "cycle %.4f conf %.4f moved %.4f far %.4f\n", t->p->set, t->p->name, h, e, score,
+         r->continuity, r->orientation, r->turns, r->distortion, r->cycle, r->confidence, mean,
+         far);
   fflush(stdout);
 }
 
@@ -301,7 +327,8 @@ static int run_pair(const bench_cfg *c, hard_pair *p, sm_error *err) {
   }
   sm_match_opts o;
   match_options(c, &o);
-  tip_trace tt = {p, &L, sx, sy};
+  tip_trace tt = {p, &L, sx, sy, malloc((size_t)sx->mesh->nv * sizeof(int32_t)), 0};
+  if (!tt.best) rc = SM_ENOMEM;
   if (c->trace_tips) {
     o.on_tip_map = trace_tip;
     o.on_tip_map_ud = &tt;
@@ -309,6 +336,7 @@ static int run_pair(const bench_cfg *c, hard_pair *p, sm_error *err) {
   double t0 = sm_now();
   if (!rc) rc = sm_match(sx, sy, &o, &r, err);
   p->t_total = sm_now() - t0;
+  free(tt.best);
   int32_t *map = rc ? NULL : malloc((size_t)L.rawx->nv * sizeof *map);
   double *e = rc ? NULL : malloc((size_t)L.gt->n * sizeof *e);
   if (!rc && (!map || !e)) rc = sm_error_set(err, SM_ENOMEM, "out of memory");

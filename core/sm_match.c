@@ -954,6 +954,7 @@ static int anchored(const sm_shape *x, const sm_shape *y, const sm_match_opts *o
   int rc = reanchor(x, y, &ao, res, &r, err);
   if (rc) return rc;
   rc = judge(j, x, y, &r, &after, err);
+  if (!rc && o->on_tip_map) o->on_tip_map(o->on_tip_map_ud, -1, &r, after);
   if (!rc && after >= before) {
     sm_match_result_free(res);
     *res = r;

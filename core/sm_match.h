@@ -148,9 +148,10 @@ typedef struct sm_match_opts {
   const int32_t *init_map;  /* optional initial map X -> Y (cleaned indices): skips init */
   int want_yx;      /* also compute the Y -> X map */
   /* Optional observer of the tip search (design data: bench_hard --trace-tips): called on
-   * the calling thread with the descriptor start's map (h = 0) and each hypothesis's map
-   * (h >= 1) and the score the search ranks them by, before the bijective pass. The result
-   * is borrowed for the call. NULL = none. */
+   * the calling thread with the descriptor start's map (h = 0), each hypothesis's map
+   * (h >= 1) and the kept map refined anchored by its tips (h = -1), with the score the
+   * search ranks them by, before the bijective pass. The result is borrowed for the call.
+   * NULL = none. */
   void (*on_tip_map)(void *ud, int h, const struct sm_match_result *r, double score);
   void *on_tip_map_ud;
   int (*cancel)(void *ud);
