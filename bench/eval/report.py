@@ -411,6 +411,13 @@ The last stage, 2026-11-28 (man -> woman's 0.036 against the 0.03 target). Every
   - Median time of a doubtful pair, two pairs at a time: 6.4 -> 8.0 s, with a test build sharing the machine for part of the run.
 - Tried as a third candidate, not kept: the final pass in the LB basis alone. Chosen by confidence among the three: man -> woman 0.0328 -> 0.0317, but within-class 0.0183 -> 0.0187 and gorilla 0.1517 -> 0.1572. That pass alone gives gorilla 0.1676 (5 pairs above 0.25) and within-class 0.0232.
 - Speed on this session's machine, with the same code: homer 2.08-2.10 s with 2 threads (the 1.62 s of 2026-11-27 was measured on another machine of this kind).
+
+Tried on 2026-11-28 (third session), none shipped:
+- Laplacian commutativity in every ZoomOut fit (each entry of C shrunk by 1 + mu (lambda_i(X)/lambda_K(X) - lambda_j(Y)/lambda_K(Y))^2, mu = 1; an experiment build): man -> woman 0.0328 -> 0.0328 (every pair within 0.0004).
+- Smoothing the final map over the source's one-ring (saved maps of the default run, Python): ring medoid 0.0331; neighbours' mean image snapped to the nearest target vertex, 1 / 3 rounds: 0.0326 / 0.0327. The edge-length snap of the multi-resolution path (section 7), 10 sweeps: 0.0328 (per pair within 0.0007). The error is a smooth sliding; local moves do not reach it.
+- The final pass on every vertex instead of the samples: man -> woman 0.0324 (-1.2%), median time 7.4 -> 11.5 s.
+- An extrinsic step (the map's displacement field low-passed in the LB basis, then the nearest target vertex in 3D): far worse on the first three pairs (0.035 -> 0.099 / 0.129 / 0.087).
+- Gorilla, the anchored refit of the kept tip map (`bench_hard --trace-tips` now prints it as hypothesis -1, with how far it moved): it lowers the error on 42 of the 44 pairs where it runs (e.g. 0.209 -> 0.104); the judge keeps it on 39 (38 of them better) and rejects 5 (4 of them better). The one kept and worse, 8_gorilla_03 -> 8_woman_12 (0.171 -> 0.397, judge 0.758 -> 1.039; 0.134 with `--anchor 0`), moved as far as the refits that help (on the first 25 pairs traced: mean displacement 0.098 against 0.044-0.137, share of vertices moved by more than 0.1: 0.35 against 0.13-0.44), so a trust region on the displacement would not separate it. Of the other three pairs above 0.25, two are close calls of the judge (a 0.18 map scored 0.55 against a wrong map's 0.61; a 0.24 map 0.55 against 0.59) and one a confident wrong map (8_gorilla_05 -> 8_man_05: front and back exchanged, judge 1.69 against 0.78 for a 0.17 map, confidence 0.30 against 0.001).
 """
 
 
