@@ -34,12 +34,14 @@ int sm_multires_wanted(const sm_multires_opts *o, int32_t nv_x, int32_t nv_y) {
 
 static int check_mopts(const sm_multires_opts *o, sm_error *err) {
   if (o->mode < SM_MULTIRES_AUTO || o->mode > SM_MULTIRES_OFF || o->coarse_nv < 200 ||
-      o->ring < 1 || o->threshold < 0 || o->fine_iters < 0 || o->snap_iters < 0 || !(o->max_aspect >= 1.5) ||
-      !isfinite(o->max_aspect) || (o->coarse_tips != 0 && o->coarse_tips != 1))
+      o->ring < 1 || o->threshold < 0 || o->fine_iters < 0 || o->snap_iters < 0 ||
+      !(o->max_aspect >= 1.5) || !isfinite(o->max_aspect) ||
+      (o->coarse_tips != 0 && o->coarse_tips != 1))
     return sm_error_set(err, SM_EINVAL, "multires: mode %d, coarse_nv %d (>= 200), ring %d "
-                        "(>= 1), threshold %d (>= 0), fine_iters %d (>= 0), max_aspect %g "
-                        "(>= 1.5), coarse_tips %d (0 or 1) invalid", o->mode, o->coarse_nv,
-                        o->ring, o->threshold, o->fine_iters, o->max_aspect, o->coarse_tips);
+                        "(>= 1), threshold %d (>= 0), fine_iters %d (>= 0), snap_iters %d "
+                        "(>= 0), max_aspect %g (>= 1.5), coarse_tips %d (0 or 1) invalid",
+                        o->mode, o->coarse_nv, o->ring, o->threshold, o->fine_iters,
+                        o->snap_iters, o->max_aspect, o->coarse_tips);
   return SM_OK;
 }
 

@@ -69,7 +69,7 @@ enum sm_multires_mode { SM_MULTIRES_AUTO = 0, SM_MULTIRES_ON = 1, SM_MULTIRES_OF
 #define SM_MULTIRES_COARSE_NV 5000  /* vertices of the coarse level */
 #define SM_MULTIRES_RING 2          /* candidate radius of the fine extraction, coarse edges */
 #define SM_MULTIRES_FINE_ITERS 2    /* fine-level refits of the functional map */
-#define SM_MULTIRES_SNAP_ITERS 10    /* at most this many sweeps of the fine snap (below) */
+#define SM_MULTIRES_SNAP_ITERS 10   /* at most this many sweeps of the fine snap (below) */
 #define SM_MULTIRES_MAX_ASPECT 10.0 /* aspect-ratio bound of the decimation (sm_deform.h) */
 /* The coarse match's tip search (sm_match.h): 1 = it runs whatever the coarse map's
  * confidence when the match options ask for it "when doubtful" (the default), 0 = as asked.
@@ -134,7 +134,6 @@ int sm_multires_match(const sm_multires_shape *x, const sm_multires_shape *y,
                       sm_multires_result *res, sm_error *err);
 void sm_multires_result_free(sm_multires_result *r);
 
-/* out[input vertex of X] = input vertex of Y or -1 (x->mesh->n_input entries). */
 /* The fine snap, last step of sm_multires_match (both directions): up to iters sweeps,
  * stopping at the first that moves nothing; in each, every vertex i of X moves its image
  * T[i] to the vertex of {T[i]} + its one-ring in Y that best keeps the lengths of i's
@@ -150,6 +149,7 @@ void sm_multires_result_free(sm_multires_result *r);
 int sm_multires_snap(const sm_mesh *mx, const sm_mesh *my, int iters, int32_t *T,
                      sm_error *err);
 
+/* out[input vertex of X] = input vertex of Y or -1 (x->mesh->n_input entries). */
 void sm_multires_to_input(const sm_multires_shape *x, const sm_multires_shape *y,
                           const int32_t *T, int32_t *out);
 

@@ -272,6 +272,9 @@ static void test_options(void) {
   o.fine_iters = -1;
   CHECK(sm_multires_shape_prepare(s, &so, &o, &x, &err) == SM_EINVAL && !x);
   sm_multires_opts_default(&o);
+  o.snap_iters = -1;
+  CHECK(sm_multires_shape_prepare(s, &so, &o, &x, &err) == SM_EINVAL && !x);
+  sm_multires_opts_default(&o);
   o.max_aspect = 1.0;
   CHECK(sm_multires_shape_prepare(s, &so, &o, &x, &err) == SM_EINVAL && !x);
   sm_multires_opts_default(&o);
