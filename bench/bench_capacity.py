@@ -25,12 +25,13 @@ import json
 import os
 import re
 import shutil
-import signal
 import socket
 import statistics
 import subprocess
 import sys
 import time
+
+import smdaemon
 
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
 TOSCA = os.path.abspath(os.path.join(ROOT, "..", "shared", "data", "tosca_classification_5k"))
@@ -53,32 +54,16 @@ def free_port():
 
 class Daemon:
     def __init__(self, build, data, log):
-        self.log = open(log, "w")
-        self.proc = subprocess.Popen(
-            [os.path.join(build, "server", "shapematchd"), "--port", "0", "--data-dir", data,
-             "--threads", "1", "--prepare-on-put", "0", "--cache-mb", "4096"],
-            stderr=self.log)
-        self.port = None
-        for _ in range(400):
-            with open(log) as f:
-                m = re.search(r"msg=listening port=(\d+)", f.read())
-            if m:
-                self.port = int(m.group(1))
-                break
-            if self.proc.poll() is not None:
-                break
-            time.sleep(0.05)
-        if self.port is None:
-            die("daemon did not start (%s)" % log)
+        try:
+            self.proc, self.port = smdaemon.start(
+                os.path.join(build, "server", "shapematchd"), data,
+                ["--threads", "1", "--prepare-on-put", "0", "--cache-mb", "4096"], log)
+        except RuntimeError as e:
+            die(str(e))
         self.addr = "127.0.0.1:%d" % self.port
 
     def stop(self):
-        self.proc.send_signal(signal.SIGTERM)
-        try:
-            self.proc.wait(30)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-        self.log.close()
+        smdaemon.stop(self.proc, 30)
 
 
 class Cli:

@@ -22,13 +22,14 @@ command fails.
 import argparse
 import json
 import os
-import re
-import signal
 import subprocess
 import sys
 import time
 
 import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+import smdaemon  # noqa: E402  (bench/smdaemon.py)
 
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", ".."))
 TOSCA = os.path.abspath(os.path.join(ROOT, "..", "shared", "data", "tosca_classification_5k"))
@@ -59,20 +60,12 @@ def run_parallel(cmds, jobs, env):
 class Daemon:
     def __init__(self, build, work, threads, env):
         self.cli = os.path.join(build, "clients", "shapematch")
-        logf = open(os.path.join(work, "shapematchd.log"), "w")
-        self.proc = subprocess.Popen(
-            [os.path.join(build, "server", "shapematchd"), "--port", "0", "--data-dir",
-             os.path.join(work, "store"), "--cache-mb", "8192", "--threads", str(threads)],
-            stderr=logf, env=env)
+        self.proc, port = smdaemon.start(
+            os.path.join(build, "server", "shapematchd"), os.path.join(work, "store"),
+            ["--cache-mb", "8192", "--threads", str(threads)],
+            os.path.join(work, "shapematchd.log"), env=env)
+        env["SHAPEMATCH_SERVER"] = f"127.0.0.1:{port}"
         self.env = env
-        for _ in range(200):
-            time.sleep(0.1)
-            with open(logf.name) as f:
-                m = re.search(r"msg=listening port=(\d+)", f.read())
-            if m:
-                env["SHAPEMATCH_SERVER"] = f"127.0.0.1:{m.group(1)}"
-                return
-        raise RuntimeError("shapematchd did not start; see " + logf.name)
 
     def cli_run(self, args):
         r = subprocess.run([self.cli] + args, env=self.env, capture_output=True, text=True)
@@ -81,8 +74,7 @@ class Daemon:
         return r.stdout
 
     def stop(self):
-        self.proc.send_signal(signal.SIGTERM)
-        self.proc.wait(timeout=120)
+        smdaemon.stop(self.proc)
 
 
 def make_gallery(build, work, env):

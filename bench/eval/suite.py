@@ -24,13 +24,14 @@ import argparse
 import json
 import math
 import os
-import re
-import signal
 import subprocess
 import sys
 import time
 
 import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+import smdaemon  # noqa: E402  (bench/smdaemon.py)
 
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", ".."))
 DATA = os.path.abspath(os.path.join(ROOT, "..", "shared", "data"))
@@ -123,24 +124,15 @@ class Suite:
     # ---- daemon -------------------------------------------------------------------------
     def start_daemon(self):
         store = os.path.join(self.work, "store")
-        logf = open(os.path.join(self.work, "shapematchd.log"), "w")
-        self.daemon = subprocess.Popen(
-            [self.daemon_bin, "--port", "0", "--data-dir", store, "--cache-mb", "4096"],
-            stderr=logf, env=self.env)
-        for _ in range(100):
-            time.sleep(0.1)
-            with open(logf.name) as f:
-                m = re.search(r"msg=listening port=(\d+)", f.read())
-            if m:
-                self.env["SHAPEMATCH_SERVER"] = f"127.0.0.1:{m.group(1)}"
-                log(f"shapematchd on {self.env['SHAPEMATCH_SERVER']}, store {store}")
-                return
-        raise RuntimeError("shapematchd did not start; see " + logf.name)
+        self.daemon, port = smdaemon.start(self.daemon_bin, store, ["--cache-mb", "4096"],
+                                           os.path.join(self.work, "shapematchd.log"),
+                                           env=self.env)
+        self.env["SHAPEMATCH_SERVER"] = f"127.0.0.1:{port}"
+        log(f"shapematchd on {self.env['SHAPEMATCH_SERVER']}, store {store}")
 
     def stop_daemon(self):
         if self.daemon:
-            self.daemon.send_signal(signal.SIGTERM)
-            rc = self.daemon.wait(timeout=120)
+            rc = smdaemon.stop(self.daemon)
             self.daemon = None
             if rc != 0:
                 raise RuntimeError(f"shapematchd exited {rc} after SIGTERM")
