@@ -9,7 +9,10 @@
  *             permuted woman; dense GT)
  * Per pair: mean geodesic error (sm_metrics, the definitions of shared/tools/eval_map.py),
  * the confidence the match reports, the time split; per set: mean, median, max, pairs
- * above 0.06 / 0.1 / 0.25; over all pairs: the AUROC of the confidence for separating
+ * above 0.06 / 0.1 / 0.25, and how many of those above 0.25 lie within half their error
+ * of the target's mirrored GT (`swapped`: left and right exchanged, by a mirror or by a
+ * half turn that also exchanges front and back; tosca_nonisometric_dev ships X.sym.vts;
+ * per pair `mirr`, NAN without one); over all pairs: the AUROC of the confidence for separating
  * failed maps (error > 0.1) from good ones (error < 0.05), i.e. the probability that a
  * random good map gets a higher confidence than a random failed one (ties count half).
  *
@@ -64,6 +67,7 @@ void openblas_set_num_threads(int);
 typedef struct hard_pair {
   char set[16], name[300];
   char src[1024], tgt[1024], gt_src[1024], gt_tgt[1024]; /* gt_*: vts files or "" */
+  char gt_mirror[1024]; /* the target's left/right-mirrored GT (X.sym.vts), or "" */
   int classic;  /* index into PAIRS, or -1 */
   /* results */
   int ok;
@@ -72,6 +76,7 @@ typedef struct hard_pair {
       t_refine, t_total;
   int flipped, hypothesis, ext_tried, ext_hypothesis;
   double final_lb_weight; /* sm_match_result.final_lb_weight */
+  double err_mirror;      /* mean error against gt_mirror; NAN without one */
 } hard_pair;
 
 typedef struct bench_cfg {
@@ -139,7 +144,10 @@ static int add_list(hard_pair *P, int n, const char *set, const char *dir, const
     snprintf(p->tgt + strlen(p->tgt), sizeof p->tgt - strlen(p->tgt), mesh_fmt, b);
     snprintf(p->gt_src, sizeof p->gt_src, "%s/%s/corres/%s.vts", SM_DATA_DIR, dir, a);
     snprintf(p->gt_tgt, sizeof p->gt_tgt, "%s/%s/corres/%s.vts", SM_DATA_DIR, dir, b);
+    snprintf(p->gt_mirror, sizeof p->gt_mirror, "%s/%s/corres/%s.sym.vts", SM_DATA_DIR, dir, b);
+    if (access(p->gt_mirror, R_OK)) p->gt_mirror[0] = 0;
     p->classic = -1;
+    p->err_mirror = NAN;
     added++;
   }
   fclose(f);
@@ -153,6 +161,7 @@ static int add_classic(hard_pair *P, int n, int limit) {
     snprintf(p->set, sizeof p->set, "classic");
     snprintf(p->name, sizeof p->name, "%s", PAIRS[i].name);
     p->classic = i;
+    p->err_mirror = NAN;
   }
   return n;
 }
@@ -309,6 +318,26 @@ static void save_map(const char *dir, const hard_pair *p, const int32_t *map, in
   fclose(f);
 }
 
+/* Mean error of map (input vertices) against the target's mirrored GT: a failed map that
+ * is near it swapped left and right, alone (a mirror) or with front and back (a half
+ * turn about the body's axis; orientation-preserving). NAN without a mirrored GT. */
+static double mirror_error(const hard_pair *p, const bench_raw_pair *L, const int32_t *map,
+                           sm_error *err) {
+  sm_gt *gt = NULL;
+  double mean = NAN;
+  if (!p->gt_mirror[0] ||
+      sm_gt_load_vts(p->gt_src, p->gt_mirror, 1, L->rawx->nv, L->rawy->nv, &gt, err))
+    return NAN;
+  double *e = malloc((size_t)gt->n * sizeof *e);
+  sm_geo_stats gs;
+  if (e && !sm_geodesic_errors(L->rawy, map, L->rawx->nv, gt, 1, e, err) &&
+      !sm_geo_summarize(e, gt->n, &gs, err))
+    mean = gs.mean;
+  free(e);
+  sm_gt_destroy(gt);
+  return mean;
+}
+
 static int run_pair(const bench_cfg *c, hard_pair *p, sm_error *err) {
   bench_raw_pair L = {0};
   sm_shape *sx = NULL, *sy = NULL;
@@ -365,6 +394,7 @@ static int run_pair(const bench_cfg *c, hard_pair *p, sm_error *err) {
     p->ext_tried = r.ext_tried;
     p->ext_hypothesis = r.ext_hypothesis;
     p->final_lb_weight = r.final_lb_weight;
+    p->err_mirror = mirror_error(p, &L, map, err);
   }
   free(map);
   free(e);
@@ -400,11 +430,11 @@ static void *worker(void *arg) {
     pthread_mutex_lock(&w->lock);
     if (p->ok)
       printf("%-9s %-28s err %.4f  max %.3f  conf %.3f  orient %+.2f cont %.3f cyc %.3f  hyp %2d%s  "
-             "tips %d/%d  lbw %.1f  init %.2f s  refine %.2f s  total %.2f s\n",
+             "tips %d/%d  lbw %.1f  init %.2f s  refine %.2f s  total %.2f s  mirr %.4f\n",
              p->set, p->name, p->err_mean, p->err_max, p->confidence, p->orientation,
              p->continuity, p->cycle, p->hypothesis, p->flipped ? " flip" : "",
              p->ext_hypothesis, p->ext_tried, p->final_lb_weight, p->t_init, p->t_refine,
-             p->t_total);
+             p->t_total, p->err_mirror);
     else
       printf("%-9s %-28s FAILED: %s\n", p->set, p->name, p->error);
     fflush(stdout);
@@ -437,6 +467,7 @@ static double auroc(const hard_pair *P, int n, int *ngood, int *nbad) {
 
 typedef struct set_stats {
   int n, failed, above006, above01, above025;
+  int swapped; /* of the maps above 0.25: those within half their error of the mirrored GT */
   double mean, median, max, conf_mean, t_median;
 } set_stats;
 
@@ -459,6 +490,7 @@ static set_stats summarize(const hard_pair *P, int n, const char *set) {
     s.above006 += e > 0.06;
     s.above01 += e > 0.1;
     s.above025 += e > 0.25;
+    s.swapped += e > 0.25 && P[i].err_mirror < e / 2; /* false when NAN */
   }
   if (s.n) {
     s.mean /= s.n;
@@ -501,6 +533,7 @@ static void write_json(const char *path, const bench_cfg *c, const hard_pair *P,
       fprintf(f, "\"final_lb_weight\": %g, ", p->final_lb_weight);
       jnum(f, "t_init", p->t_init, 1);
       jnum(f, "t_refine", p->t_refine, 1);
+      if (!isnan(p->err_mirror)) jnum(f, "err_mirror", p->err_mirror, 1);
       jnum(f, "t_total", p->t_total, 0);
     } else {
       fprintf(f, "\"error\": ");
@@ -518,6 +551,7 @@ static void write_json(const char *path, const bench_cfg *c, const hard_pair *P,
     jnum(f, "max", st.max, 1);
     fprintf(f, "\"above_0.06\": %d, \"above_0.1\": %d, \"above_0.25\": %d, ", st.above006,
             st.above01, st.above025);
+    fprintf(f, "\"above_0.25_swapped\": %d, ", st.swapped);
     jnum(f, "confidence_mean", st.conf_mean, 1);
     jnum(f, "t_median", st.t_median, 0);
     fprintf(f, "}");
@@ -605,14 +639,14 @@ int main(int argc, char **argv) {
   for (int t = 0; t < nt; t++) pthread_create(&th[t], NULL, worker, &w);
   for (int t = 0; t < nt; t++) pthread_join(th[t], NULL);
   int any_failed = 0;
-  printf("\n%-9s %4s %7s %7s %7s %6s %6s %6s %7s %8s\n", "set", "n", "mean", "median", "max",
-         ">0.06", ">0.1", ">0.25", "conf", "t_med");
+  printf("\n%-9s %4s %7s %7s %7s %6s %6s %6s %7s %7s %8s\n", "set", "n", "mean", "median",
+         "max", ">0.06", ">0.1", ">0.25", "swapped", "conf", "t_med");
   for (int s = 0; s < nsets; s++) {
     set_stats st = summarize(P, n, sets[s]);
     any_failed |= st.failed > 0;
-    printf("%-9s %4d %7.4f %7.4f %7.4f %6d %6d %6d %7.3f %7.2fs%s\n", sets[s], st.n, st.mean,
-           st.median, st.max, st.above006, st.above01, st.above025, st.conf_mean, st.t_median,
-           st.failed ? "  (some FAILED)" : "");
+    printf("%-9s %4d %7.4f %7.4f %7.4f %6d %6d %6d %7d %7.3f %7.2fs%s\n", sets[s], st.n,
+           st.mean, st.median, st.max, st.above006, st.above01, st.above025, st.swapped,
+           st.conf_mean, st.t_median, st.failed ? "  (some FAILED)" : "");
   }
   int ng, nb;
   double au = auroc(P, n, &ng, &nb);
