@@ -427,6 +427,7 @@ Tried on 2026-11-29, none shipped (an experiment build with switches; `bench_har
   - Without the soft Sinkhorn steps (`sinkhorn_levels` 0): 30-35% less time on every set. Homer 2.56 / 1.95 s, same error. But gorilla 0.1517 -> 0.2479 (above 0.25: 4 -> 13), man -> woman 0.0338, within-class 0.0183 -> 0.0207 (max 0.0903). The paper's sparse-kernel Sinkhorn steps are what puts the hard pairs in their basin.
   - Two threads: `perf stat` on the four tuned pairs shows 1.44 CPUs used. Outside the neighbour search, the main thread still carries ~28% of all samples (the ZoomOut fits, Sinkhorn iterations, descriptors). Splitting the rest perfectly would save at most ~7%.
 - ZoomOut up to k = 80 instead of 100 (`--k1 80`), man -> woman: 0.0328 -> 0.0335.
+- The orientation term's weight in the tip hypotheses' coarse maps (default 1; they are the only orientation-aware step of a hypothesis), gorilla: 0.2 / 5 give 0.2003 / 0.1757 (above 0.25: 9 / 6). Each of this session's perturbations moved 40 or more of the 45 gorilla pairs, some up and some down (weight 5: 17 better, 27 worse by more than 0.002). The set's mean is fragile, so a change should be judged by how many pairs it moves each way, not by the mean alone.
 - Judging the hypotheses after their bijective pass (each hypothesis map, and the descriptor start's, refined by the final pass before the judge sees them): gorilla 0.1516 -> 0.1891 (above 0.25: 4 -> 9; 21 pairs better, 21 worse), median time 9.0 -> 12.6 s. The pass untwists some right maps, but it also cleans up wrong ones.
 """
 
