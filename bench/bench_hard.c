@@ -208,23 +208,31 @@ static void match_options(const bench_cfg *c, sm_match_opts *o) {
   o->want_yx = 1;
 }
 
+/* Mean geodesic error of map (input vertices of X -> of Y) against gt; NAN on failure. */
+static double mean_error(const bench_raw_pair *L, const int32_t *map, const sm_gt *gt,
+                         sm_error *err) {
+  double *e = malloc((size_t)gt->n * sizeof *e), mean = NAN;
+  sm_geo_stats gs;
+  if (e && !sm_geodesic_errors(L->rawy, map, L->rawx->nv, gt, 1, e, err) &&
+      !sm_geo_summarize(e, gt->n, &gs, err))
+    mean = gs.mean;
+  free(e);
+  return mean;
+}
+
 /* --analyze: every start of the global search, its intrinsic scores and its true error
  * (the data the search's energy is designed from; never used by the product). */
 static double map_error(const bench_raw_pair *L, const sm_shape *sx, const sm_shape *sy,
                         const int32_t *T, sm_error *err) {
   int32_t *map = malloc((size_t)L->rawx->nv * sizeof *map);
-  double *e = malloc((size_t)L->gt->n * sizeof *e), mean = NAN;
-  sm_geo_stats gs;
-  if (map && e) {
+  double mean = NAN;
+  if (map) {
     sm_match_to_input(sx, sy, T, map);
     for (int32_t i = 0; i < L->rawx->nv; i++)
       if (map[i] < 0) map[i] = 0;
-    if (!sm_geodesic_errors(L->rawy, map, L->rawx->nv, L->gt, 1, e, err) &&
-        !sm_geo_summarize(e, L->gt->n, &gs, err))
-      mean = gs.mean;
+    mean = mean_error(L, map, L->gt, err);
   }
   free(map);
-  free(e);
   return mean;
 }
 
@@ -324,16 +332,10 @@ static void save_map(const char *dir, const hard_pair *p, const int32_t *map, in
 static double mirror_error(const hard_pair *p, const bench_raw_pair *L, const int32_t *map,
                            sm_error *err) {
   sm_gt *gt = NULL;
-  double mean = NAN;
   if (!p->gt_mirror[0] ||
       sm_gt_load_vts(p->gt_src, p->gt_mirror, 1, L->rawx->nv, L->rawy->nv, &gt, err))
     return NAN;
-  double *e = malloc((size_t)gt->n * sizeof *e);
-  sm_geo_stats gs;
-  if (e && !sm_geodesic_errors(L->rawy, map, L->rawx->nv, gt, 1, e, err) &&
-      !sm_geo_summarize(e, gt->n, &gs, err))
-    mean = gs.mean;
-  free(e);
+  double mean = mean_error(L, map, gt, err);
   sm_gt_destroy(gt);
   return mean;
 }
