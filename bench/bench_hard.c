@@ -29,6 +29,8 @@
  *                   [--extremities 0|1|2] [--ext-below C] [--ext-hypotheses H]
  *                   [--bijective W] (the last stage's bijective ZoomOut weight, 0 = off)
  *                   [--anchor W] (landmark anchoring of the kept tip map; 0 = off)
+ *                   [--anchor-orient W] (weight of the tips' orientation features in
+ *                   that anchoring, sm_match_opts.anchor_orient; 0 = off)
  *                   [--match-threads N] (threads of each match, sm_match_opts.threads;
  *                   with --threads 1, the time of one match using N cores)
  *                   [--only A-B,C-D] (only these pairs of the lists, by name)
@@ -84,6 +86,7 @@ typedef struct bench_cfg {
   int global, multi_start, k1, analyze, trace_tips, extremities, ext_h;
   double ext_below, bijective; /* bijective < 0: the product's default */
   double anchor;                /* < 0: the product's default */
+  double anchor_orient;         /* < 0: the product's default */
   int match_threads;            /* sm_match_opts.threads of each match; 0: the default */
   const char *save_maps;        /* directory for each pair's map (input vertices), or NULL */
   int final_choice;             /* < 0: the product's default */
@@ -203,6 +206,7 @@ static void match_options(const bench_cfg *c, sm_match_opts *o) {
   if (c->k1 > 0) o->k1 = c->k1;
   if (c->bijective >= 0) o->bijective = c->bijective;
   if (c->anchor >= 0) o->anchor = c->anchor;
+  if (c->anchor_orient >= 0) o->anchor_orient = c->anchor_orient;
   if (c->final_choice >= 0) o->final_choice = c->final_choice;
   if (c->match_threads > 0) o->threads = c->match_threads;
   o->want_yx = 1;
@@ -569,14 +573,14 @@ static void usage(void) {
   fprintf(stderr, "usage: bench_hard [--sets gorilla,manwoman,within,classic] [--cache DIR] "
                   "[--threads N] [--json OUT] [--limit N] [--global 0|1] [--multi-start] "
                   "[--k1 K] [--analyze] [--trace-tips] [--extremities 0|1|2] [--ext-below C] "
-                  "[--ext-hypotheses H] [--bijective W] [--anchor W] [--match-threads N] "
+                  "[--ext-hypotheses H] [--bijective W] [--anchor W] [--anchor-orient W] [--match-threads N] "
                   "[--only PAIR,PAIR] [--save-maps DIR] [--final-choice 0|1]\n");
 }
 
 int main(int argc, char **argv) {
   bench_cfg cfg = {.cache = "bench-cache", .global = -1, .extremities = -1,
                    .ext_below = -1, .bijective = -1,
-                   .anchor = -1, .final_choice = -1};
+                   .anchor = -1, .anchor_orient = -1, .final_choice = -1};
   const char *sets_arg = NULL, *json = NULL;
   int threads = 2, limit = 0;
   for (int i = 1; i < argc; i++) {
@@ -594,6 +598,7 @@ int main(int argc, char **argv) {
     else if (!strcmp(a, "--ext-hypotheses") && v) cfg.ext_h = atoi(argv[++i]);
     else if (!strcmp(a, "--bijective") && v) cfg.bijective = atof(argv[++i]);
     else if (!strcmp(a, "--anchor") && v) cfg.anchor = atof(argv[++i]);
+    else if (!strcmp(a, "--anchor-orient") && v) cfg.anchor_orient = atof(argv[++i]);
     else if (!strcmp(a, "--match-threads") && v) cfg.match_threads = atoi(argv[++i]);
     else if (!strcmp(a, "--only") && v) only_pairs = argv[++i];
     else if (!strcmp(a, "--save-maps") && v) cfg.save_maps = argv[++i];

@@ -79,6 +79,57 @@ static void face_grad(const sm_mesh *m, const double *H, int32_t t, const double
   for (int d = 0; d < 3; d++) g[d] = f[F[0]] * h[d] + f[F[1]] * h[3 + d] + f[F[2]] * h[6 + d];
 }
 
+/* Unit gradients of the nu functions on face t (zero where undefined). */
+static void unit_grads(const sm_mesh *m, const double *H, int32_t t, const double *U, int nu,
+                       double *g) {
+  for (int a = 0; a < nu; a++) {
+    double *ga = g + 3 * a;
+    face_grad(m, H, t, U + (size_t)a * m->nv, ga);
+    double len = sqrt(ga[0] * ga[0] + ga[1] * ga[1] + ga[2] * ga[2]);
+    double s = len > 0 && isfinite(len) ? 1 / len : 0;
+    for (int d = 0; d < 3; d++) ga[d] = s ? ga[d] * s : 0;
+  }
+}
+
+int sm_orientation_features(const sm_mesh *m, const double *U, int nu, double scale,
+                            double *out, sm_error *err) {
+  if (nu < 0) return sm_error_set(err, SM_EINVAL, "orientation features: nu = %d", nu);
+  int np = nu * (nu - 1) / 2;
+  int32_t n = m->nv;
+  double *N = malloc((size_t)m->nf * 3 * sizeof *N), *area = malloc((size_t)m->nf * sizeof *area);
+  double *H = malloc((size_t)m->nf * 9 * sizeof *H), *va = calloc((size_t)n, sizeof *va);
+  double *g = malloc((size_t)(nu > 0 ? nu : 1) * 3 * sizeof *g);
+  int rc = (!N || !area || !H || !va || !g)
+               ? sm_error_set(err, SM_ENOMEM, "orientation features: out of memory")
+               : SM_OK;
+  if (!rc) {
+    face_geometry(m, N, area, H);
+    memset(out, 0, (size_t)n * np * sizeof *out);
+  }
+  for (int32_t t = 0; !rc && t < m->nf; t++) {
+    const double *nt = N + 3 * (int64_t)t;
+    const int32_t *F = m->F + 3 * (int64_t)t;
+    unit_grads(m, H, t, U, nu, g);
+    for (int a = 0, q = 0; a < nu; a++)
+      for (int b = a + 1; b < nu; b++, q++) {
+        const double *ga = g + 3 * a, *gb = g + 3 * b;
+        double s = nt[0] * (ga[1] * gb[2] - ga[2] * gb[1]) +
+                   nt[1] * (ga[2] * gb[0] - ga[0] * gb[2]) +
+                   nt[2] * (ga[0] * gb[1] - ga[1] * gb[0]);
+        for (int c = 0; c < 3; c++) out[(size_t)F[c] * np + q] += area[t] * s;
+      }
+    for (int c = 0; c < 3; c++) va[F[c]] += area[t];
+  }
+  for (int32_t v = 0; !rc && v < n; v++)
+    for (int q = 0; q < np; q++) out[(size_t)v * np + q] *= va[v] > 0 ? scale / va[v] : 0;
+  free(N);
+  free(area);
+  free(H);
+  free(va);
+  free(g);
+  return rc;
+}
+
 typedef struct geom {
   double *N, *area, *H, *vert_area;
   double *gradphi; /* nf x 3 x k0: gradient of each basis function per face */

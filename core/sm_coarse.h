@@ -64,4 +64,18 @@ int sm_coarse_fmap_prepared(const sm_coarse_prep *x, const sm_coarse_prep *y,
  * orientation, -1 = a mirror. Faces whose image is degenerate count 0. */
 double sm_map_orientation_score(const sm_mesh *X, const sm_mesh *Y, const int32_t *T);
 
+/* Orientation features of nu scalar functions U (n x nu, column-major; e.g. the distances
+ * from nu landmarks): for each pair a < b, in the order (0,1), (0,2), ..., (1,2), ..., the
+ * area-weighted vertex average of the per-face <n, g_a x g_b> with g = grad u / |grad u|:
+ * the sine of the angle between the two gradients, signed by the outward normal, in
+ * [-1, 1]. A map that keeps the u's and the orientation keeps every feature; a mirror
+ * negates them. On a human's torso with u = the distances from the head and from a hand,
+ * the front reads one sign and the back the other: what tells them apart once the tips
+ * are matched, which the distances alone cannot (they are symmetric front to back).
+ * Faces where a gradient is zero or not finite (unreachable vertices) contribute 0.
+ * out: n x nu (nu - 1) / 2, row-major (the layout of ZoomOut's fixed features), times
+ * scale. Errors: SM_EINVAL (nu < 0), SM_ENOMEM. */
+int sm_orientation_features(const sm_mesh *m, const double *U, int nu, double scale,
+                            double *out, sm_error *err);
+
 #endif

@@ -213,6 +213,7 @@ void sm_match_opts_default(sm_match_opts *o) {
   o->final_hybrid = 1;
   o->final_choice = 1;
   o->anchor = SM_MATCH_ANCHOR;
+  o->anchor_orient = SM_MATCH_ANCHOR_ORIENT;
 }
 
 void sm_match_result_free(sm_match_result *r) {
@@ -444,20 +445,71 @@ static int sinkhorn_levels(const sm_shape *x, const sm_shape *y, const sm_match_
   return rc;
 }
 
-/* The landmark heat kernels of with_landmarks as row-major n x (nl SM_LANDMARK_TIMES)
- * features of one side (ZoomOut's fixed features). */
-static int landmark_features(const sm_shape *s, const sm_match_opts *o, int side, double **F) {
-  double *D = NULL;
-  int nd = 0, nf = o->nlandmarks * SM_LANDMARK_TIMES;
+/* Columns of landmark_features: the heat kernels when o->anchor > 0, the orientation
+ * features of the landmark pairs when o->anchor_orient > 0. */
+static int anchor_heat_cols(const sm_match_opts *o) {
+  return o->anchor > 0 ? o->nlandmarks * SM_LANDMARK_TIMES : 0;
+}
+
+static int anchor_orient_cols(const sm_match_opts *o) {
+  return o->anchor_orient > 0 ? o->nlandmarks * (o->nlandmarks - 1) / 2 : 0;
+}
+
+/* Edge-path distances (n x nl, column-major) from one side's landmarks. */
+static int landmark_distances(const sm_shape *s, const sm_match_opts *o, int side, double *U,
+                              sm_error *err) {
+  sm_edge_paths *ep = NULL;
+  int rc = sm_edge_paths_create(s->mesh, &ep, err);
+  for (int l = 0; !rc && l < o->nlandmarks; l++)
+    rc = sm_edge_paths_run(ep, o->landmarks[2 * l + side], U + (size_t)l * s->mesh->nv, err);
+  sm_edge_paths_destroy(ep);
+  return rc;
+}
+
+/* The orientation features of the landmarks (sm_orientation_features of their distances)
+ * times o->anchor_orient, into columns [off, off + np) of F (row-major, nf columns). */
+static int landmark_orientation(const sm_shape *s, const sm_match_opts *o, int side, double *F,
+                                int nf, int off, sm_error *err) {
   int32_t n = s->mesh->nv;
-  *F = NULL;
-  if (with_landmarks(s, o->landmarks, o->nlandmarks, 2, side, &D, &nd)) return SM_ENOMEM;
+  int np = anchor_orient_cols(o);
+  double *U = malloc((size_t)n * o->nlandmarks * sizeof *U), *O = malloc((size_t)n * np * sizeof *O);
+  int rc = (!U || !O) ? sm_error_set(err, SM_ENOMEM, "landmark features: out of memory") : SM_OK;
+  if (!rc) rc = landmark_distances(s, o, side, U, err);
+  if (!rc) rc = sm_orientation_features(s->mesh, U, o->nlandmarks, o->anchor_orient, O, err);
+  for (int32_t v = 0; !rc && v < n; v++)
+    memcpy(F + (size_t)v * nf + off, O + (size_t)v * np, (size_t)np * sizeof *F);
+  free(U);
+  free(O);
+  return rc;
+}
+
+/* The anchoring features of one side, row-major n x nf (ZoomOut's fixed features, at
+ * weight 1): the landmarks' heat kernels (with_landmarks) times o->anchor, then their
+ * orientation features times o->anchor_orient. The heat kernels keep each landmark where
+ * it was matched; they are symmetric front to back of a limb or a torso, which the
+ * refinement then twists freely (a gorilla's chest onto a woman's back between matched
+ * hands and feet): the orientation features fix that. */
+static int landmark_features(const sm_shape *s, const sm_match_opts *o, int side, double **F,
+                             sm_error *err) {
+  double *D = NULL;
+  int nd = 0, nh = anchor_heat_cols(o), nf = nh + anchor_orient_cols(o);
+  int32_t n = s->mesh->nv;
   *F = malloc((size_t)n * nf * sizeof **F);
-  if (*F)
-    for (int c = 0; c < nf; c++)
-      for (int32_t v = 0; v < n; v++) (*F)[(size_t)v * nf + c] = D[(size_t)(s->n_desc + c) * n + v];
+  if (!*F || (nh > 0 && with_landmarks(s, o->landmarks, o->nlandmarks, 2, side, &D, &nd))) {
+    free(*F);
+    *F = NULL;
+    return sm_error_set(err, SM_ENOMEM, "landmark features: out of memory");
+  }
+  for (int c = 0; c < nh; c++)
+    for (int32_t v = 0; v < n; v++)
+      (*F)[(size_t)v * nf + c] = o->anchor * D[(size_t)(s->n_desc + c) * n + v];
   free(D);
-  return *F ? SM_OK : SM_ENOMEM;
+  int rc = nf > nh ? landmark_orientation(s, o, side, *F, nf, nh, err) : SM_OK;
+  if (rc) {
+    free(*F);
+    *F = NULL;
+  }
+  return rc;
 }
 
 /* ZoomOut from T in the refinement basis, with fixed features fx, fy when not NULL. */
@@ -481,8 +533,8 @@ static int refine_with(const sm_shape *x, const sm_shape *y, const sm_match_opts
   if (fx && fy) {
     zo.feat_x = fx;
     zo.feat_y = fy;
-    zo.nfeat = o->nlandmarks * SM_LANDMARK_TIMES;
-    zo.feat_w = o->anchor;
+    zo.nfeat = anchor_heat_cols(o) + anchor_orient_cols(o);
+    zo.feat_w = 1; /* landmark_features weighs its columns */
   }
   zo.knn = match_knn(o);
   shape_fps(x, zo.nsample_x, &zo.samples_x, &zo.cellw_x);
@@ -498,13 +550,12 @@ static int refine(const sm_shape *x, const sm_shape *y, const sm_match_opts *o, 
                   double lb_weight, double wb, int32_t *T, double *C, int32_t *T_yx,
                   sm_error *err) {
   double *fx = NULL, *fy = NULL;
-  if (o->anchor > 0 && o->nlandmarks > 0 && wb == 0 &&
-      (landmark_features(x, o, 0, &fx) || landmark_features(y, o, 1, &fy))) {
-    free(fx);
-    free(fy);
-    return sm_error_set(err, SM_ENOMEM, "landmark features: out of memory");
+  int rc = SM_OK;
+  if (o->nlandmarks > 0 && wb == 0 && anchor_heat_cols(o) + anchor_orient_cols(o) > 0) {
+    rc = landmark_features(x, o, 0, &fx, err);
+    if (!rc) rc = landmark_features(y, o, 1, &fy, err);
   }
-  int rc = refine_with(x, y, o, basis, lb_weight, wb, fx, fy, T, C, T_yx, err);
+  if (!rc) rc = refine_with(x, y, o, basis, lb_weight, wb, fx, fy, T, C, T_yx, err);
   free(fx);
   free(fy);
   return rc;
@@ -880,6 +931,7 @@ static void *run_hypotheses(void *arg) {
     ho.landmarks = q->h[i].pairs;
     ho.nlandmarks = q->h[i].m;
     ho.anchor = 0; /* judged as they start; the kept one is anchored (anchored) */
+    ho.anchor_orient = 0;
     ho.want_yx = 1;
     ho.on_tip_map = NULL;
     q->rc[i] = sm_match(q->x, q->y, &ho, &q->r[i], &q->err[i]);

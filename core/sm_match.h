@@ -73,6 +73,7 @@ enum sm_match_ext { SM_EXT_OFF = 0, SM_EXT_WHEN_DOUBTFUL = 1, SM_EXT_ALWAYS = 2 
 #define SM_MATCH_EXT_MAX_H 12
 #define SM_MATCH_FINAL_LB_WEIGHT 0.5 /* the LB functions' weight in the hybrid final pass */
 #define SM_MATCH_ANCHOR 3.0       /* see "landmark anchoring" above and sm_match.c */
+#define SM_MATCH_ANCHOR_ORIENT 3.0 /* the same, for the landmarks' orientation features */
 
 typedef struct sm_shape_opts {
   int k_lb;        /* LB functions (descriptors, coarse map, lb/hybrid refinement) */
@@ -139,6 +140,10 @@ typedef struct sm_match_opts {
   double anchor;    /* with landmarks (or the kept tips): weight of their heat kernels as
                        fixed features of the refinement's point assignments (0 = they only
                        start the map; default SM_MATCH_ANCHOR) */
+  double anchor_orient; /* with landmarks (or the kept tips): weight of their orientation
+                       features (sm_orientation_features of the landmarks' edge-path
+                       distances, one per landmark pair) beside the heat kernels; 0 = off;
+                       default SM_MATCH_ANCHOR_ORIENT */
   int threads;      /* threads of one match (default 1: a server's workers already
                        fill the cores; the local CLI uses 2): tip hypotheses matched at
                        once, else the refinement's nearest-neighbour queries split over

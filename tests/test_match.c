@@ -4,6 +4,7 @@
 #include <pthread.h>
 #include <string.h>
 
+#include "sm_coarse.h"
 #include "sm_confidence.h"
 #include "sm_distance.h"
 #include "sm_match.h"
@@ -428,6 +429,91 @@ static void real_pair_case(const real_pair *p) {
   sm_mesh_destroy(b);
 }
 
+/* sm_orientation_features: exact on linear functions of a flat patch (the sine between two
+ * constant gradients, signed by the normal), negated by a mirror, unchanged by a rigid
+ * motion with scaling, 0 where a function is constant or unreachable. */
+static void test_orientation_features(void) {
+  sm_mesh *g = tm_grid(12, 9);
+  REQUIRE(g);
+  int32_t n = g->nv;
+  double *U = malloc((size_t)n * 4 * sizeof *U), *O = malloc((size_t)n * 6 * sizeof *O);
+  REQUIRE(U && O);
+  for (int32_t v = 0; v < n; v++) {
+    const double *p = g->V + 3 * (size_t)v;
+    U[v] = p[0];                  /* gradient +x */
+    U[n + v] = 2 * p[1];          /* +y */
+    U[2 * n + v] = p[0] + p[1];   /* (+x + y) / sqrt 2 */
+    U[3 * n + v] = 5;             /* constant: no gradient */
+  }
+  sm_error err;
+  REQUIRE(sm_orientation_features(g, U, 4, 1.0, O, &err) == 0);
+  const double want[6] = {1, sqrt(0.5), 0, -sqrt(0.5), 0, 0}; /* (0,1) (0,2) (0,3) (1,2) ... */
+  for (int32_t v = 0; v < n; v++)
+    for (int q = 0; q < 6; q++) CHECK_NEAR(O[(size_t)v * 6 + q], want[q], 1e-12);
+  sm_mesh_destroy(g);
+  free(U);
+  free(O);
+
+  /* A closed bumpy shape, the distances from three of its vertices. */
+  sm_mesh *m = tm_icosphere(3), *mir = NULL;
+  REQUIRE(m);
+  tm_jitter(m, 0.03, 7);
+  n = m->nv;
+  U = malloc((size_t)n * 3 * sizeof *U);
+  O = malloc((size_t)n * 3 * sizeof *O);
+  REQUIRE(U && O);
+  sm_edge_paths *ep = NULL;
+  REQUIRE(sm_edge_paths_create(m, &ep, &err) == 0);
+  const int32_t src[3] = {0, n / 3, 2 * n / 3};
+  for (int l = 0; l < 3; l++) REQUIRE(sm_edge_paths_run(ep, src[l], U + (size_t)l * n, &err) == 0);
+  sm_edge_paths_destroy(ep);
+  REQUIRE(sm_orientation_features(m, U, 3, 2.0, O, &err) == 0);
+  double *O2 = malloc((size_t)n * 3 * sizeof *O2), amax = 0;
+  REQUIRE(O2);
+  for (int32_t i = 0; i < 3 * n; i++) amax = fmax(amax, fabs(O[i]));
+  CHECK_MSG(amax > 1.0 && amax <= 2.0 + 1e-12, "scale 2: largest feature %.4f", amax);
+
+  /* Mirror x -> -x, faces reversed so that the normals stay outward: same distances. */
+  REQUIRE(sm_mesh_alloc(n, m->nf, NULL, &mir, NULL) == 0);
+  for (int32_t v = 0; v < n; v++) {
+    mir->V[3 * v] = -m->V[3 * v];
+    mir->V[3 * v + 1] = m->V[3 * v + 1];
+    mir->V[3 * v + 2] = m->V[3 * v + 2];
+  }
+  for (int32_t t = 0; t < m->nf; t++) {
+    mir->F[3 * t] = m->F[3 * t];
+    mir->F[3 * t + 1] = m->F[3 * t + 2];
+    mir->F[3 * t + 2] = m->F[3 * t + 1];
+  }
+  REQUIRE(sm_orientation_features(mir, U, 3, 2.0, O2, &err) == 0);
+  double worst = 0;
+  for (int32_t i = 0; i < 3 * n; i++) worst = fmax(worst, fabs(O2[i] + O[i]));
+  CHECK_MSG(worst < 1e-9, "mirror: features not negated (worst %.3g)", worst);
+
+  /* Rotated, scaled 3x and moved, the distances scaled with it: unchanged. */
+  const double t3[3] = {1, -2, 0.5};
+  tm_rigid(m, 0.3, -1.1, 2.0, 3.0, t3);
+  for (int32_t i = 0; i < 3 * n; i++) U[i] *= 3;
+  REQUIRE(sm_orientation_features(m, U, 3, 2.0, O2, &err) == 0);
+  worst = 0;
+  for (int32_t i = 0; i < 3 * n; i++) worst = fmax(worst, fabs(O2[i] - O[i]));
+  CHECK_MSG(worst < 1e-9, "rigid motion: features changed (worst %.3g)", worst);
+
+  /* An unreachable source (+inf distances) contributes nothing. */
+  for (int32_t v = 0; v < n; v++) U[2 * (size_t)n + v] = INFINITY;
+  REQUIRE(sm_orientation_features(m, U, 3, 2.0, O2, &err) == 0);
+  for (int32_t v = 0; v < n; v++) {
+    CHECK(O2[(size_t)v * 3 + 1] == 0 && O2[(size_t)v * 3 + 2] == 0);
+    CHECK_NEAR(O2[(size_t)v * 3], O[(size_t)v * 3], 1e-9);
+  }
+  CHECK(sm_orientation_features(m, U, -1, 1.0, O2, &err) == SM_EINVAL);
+  free(U);
+  free(O);
+  free(O2);
+  sm_mesh_destroy(m);
+  sm_mesh_destroy(mir);
+}
+
 int main(int argc, char **argv) {
   const int bases[3] = {SM_MATCH_LB, SM_MATCH_ELASTIC, SM_MATCH_HYBRID};
   const int inits[2] = {SM_INIT_NN, SM_INIT_SINKHORN};
@@ -439,6 +525,7 @@ int main(int argc, char **argv) {
   test_shape_cache();
   test_confidence();
   test_final_choice();
+  test_orientation_features();
   /* Bounds: the mean geodesic errors bench_match measured with the default pipeline
    * (homer 0.0238, head 0.0107, lion -> cat 0.0360, man -> woman 0.0022) plus ~20%.
    * Since the hybrid bijective pass (issue 9): homer 0.0233, head 0.0127 (bound now the
