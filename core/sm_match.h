@@ -29,7 +29,10 @@
  *   landmark anchoring (landmarks given, or the kept tip hypothesis): the landmarks' heat
  *     kernels are fixed features of every point assignment of the refinement
  *     (sm_zoomout_opts.feat_*, weight opts.anchor), so the map keeps them instead of
- *     drifting once they have started it. The tip search judges its maps unanchored (an
+ *     drifting once they have started it; beside them, one orientation feature per
+ *     landmark pair (sm_orientation_features of their distances, weight
+ *     opts.anchor_orient), which tells the front of a torso or limb from its back where
+ *     the heat kernels are symmetric. The tip search judges its maps unanchored (an
  *     anchored wrong assignment looks as continuous as a right one) and refines the kept
  *     one again from itself, anchored by the tips that map confirms, keeping the anchored
  *     map when the judge scores it at least as well (sm_match.c: confirmed_tips,
