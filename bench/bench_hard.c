@@ -74,7 +74,7 @@ typedef struct hard_pair {
   /* results */
   int ok;
   char error[1200];
-  double err_mean, err_max, confidence, orientation, continuity, cycle, distortion, turns, t_init,
+  double err_mean, err_max, confidence, orientation, continuity, cycle, distortion, turns, curvature, t_init,
       t_refine, t_total;
   int flipped, hypothesis, ext_tried, ext_hypothesis;
   double final_lb_weight; /* sm_match_result.final_lb_weight */
@@ -311,9 +311,9 @@ static void trace_tip(void *ud, int h, const sm_match_result *r, double score) {
     t->best_score = score;
   }
   printf("TIP %s %s %d err %.4f score %.4f cont %.4f orient %+.4f turns %.4f distort %.4f "
-         "cycle %.4f conf %.4f moved %.4f far %.4f\n", t->p->set, t->p->name, h, e, score,
-         r->continuity, r->orientation, r->turns, r->distortion, r->cycle, r->confidence, mean,
-         far);
+         "curv %.4f cycle %.4f conf %.4f moved %.4f far %.4f\n", t->p->set, t->p->name, h, e,
+         score, r->continuity, r->orientation, r->turns, r->distortion, r->curvature, r->cycle,
+         r->confidence, mean, far);
   fflush(stdout);
 }
 
@@ -393,6 +393,7 @@ static int run_pair(const bench_cfg *c, hard_pair *p, sm_error *err) {
     p->cycle = r.cycle;
     p->distortion = r.distortion;
     p->turns = r.turns;
+    p->curvature = r.curvature;
     p->t_init = r.t_init;
     p->t_refine = r.t_refine;
     p->flipped = r.flipped;
@@ -534,6 +535,7 @@ static void write_json(const char *path, const bench_cfg *c, const hard_pair *P,
       jnum(f, "cycle", p->cycle, 1);
       jnum(f, "distortion", p->distortion, 1);
       jnum(f, "turns", p->turns, 1);
+      jnum(f, "curvature", p->curvature, 1);
       fprintf(f, "\"hypothesis\": %d, \"flipped\": %d, ", p->hypothesis, p->flipped);
       fprintf(f, "\"ext_tried\": %d, \"ext_hypothesis\": %d, ", p->ext_tried, p->ext_hypothesis);
       fprintf(f, "\"final_lb_weight\": %g, ", p->final_lb_weight);

@@ -236,3 +236,24 @@ int sm_map_turns(sm_edge_paths *paths_y, const sm_mesh *Y, const int32_t *T,
   free(img), free(dy), free(dir_y), free(col);
   return rc;
 }
+
+double sm_map_field_agreement(const double *fx, const double *fy, const double *mass_x,
+                              int32_t nx, const int32_t *T) {
+  double sw = 0, mx = 0, my = 0;
+  for (int32_t i = 0; i < nx; i++) {
+    sw += mass_x[i];
+    mx += mass_x[i] * fx[i];
+    my += mass_x[i] * fy[T[i]];
+  }
+  if (!(sw > 0)) return 0;
+  mx /= sw;
+  my /= sw;
+  double sxy = 0, sxx = 0, syy = 0;
+  for (int32_t i = 0; i < nx; i++) {
+    double a = fx[i] - mx, b = fy[T[i]] - my;
+    sxy += mass_x[i] * a * b;
+    sxx += mass_x[i] * a * a;
+    syy += mass_x[i] * b * b;
+  }
+  return sxx > 0 && syy > 0 ? sxy / sqrt(sxx * syy) : 0;
+}

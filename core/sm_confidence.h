@@ -78,4 +78,13 @@ int sm_map_turns(sm_edge_paths *paths_y, const sm_mesh *Y, const int32_t *T,
                  const int32_t *src, const double *src_dist, const double *dir_x, int ns,
                  int ld, double *distortion, double *turns, sm_error *err);
 
+/* How well T carries a scalar field: the correlation, weighted by X's vertex masses, of
+ * f_x(i) and f_y(T(i)) over X's vertices, in [-1, 1] (0 when either side is constant).
+ * With f = the smoothed mean curvature (sm_mean_curvature), a half turn about a body's
+ * axis (front onto back, left onto right: orientation kept, so the turns cannot see it)
+ * reads lower than the right map: it puts a chest, a face or toes where the other shape
+ * is flat or hollow. */
+double sm_map_field_agreement(const double *fx, const double *fy, const double *mass_x,
+                              int32_t nx, const int32_t *T);
+
 #endif

@@ -20,8 +20,11 @@
  *   tip search (default: when the map's confidence is below ext_below; sm_extremity.h):
  *     the tips of both shapes (head, hands, feet, tail) are found from the average geodesic
  *     distance; each of the ext_hypotheses cheapest tip assignments becomes the landmarks
- *     of a full match, and of those maps and the first one the most continuous, least
- *     distorted and best turn-keeping is kept (sm_map_turns: mirrors reverse turns).
+ *     of a full match (refined with the tips' orientation features, so that the map does
+ *     not twist between them), and of those maps and the first one the most continuous,
+ *     least distorted and best turn-keeping (sm_map_turns: mirrors reverse turns) whose
+ *     smoothed mean curvatures agree best (a half turn, front onto back, keeps the turns
+ *     and loses the curvature) is kept.
  *     The descriptor start is right on near-isometric pairs and wrong, with a low
  *     confidence, between species (gorilla -> human); the tips put such a pair in the
  *     right basin. Costs one match per hypothesis, so only doubtful maps pay for it;
@@ -77,6 +80,9 @@ enum sm_match_ext { SM_EXT_OFF = 0, SM_EXT_WHEN_DOUBTFUL = 1, SM_EXT_ALWAYS = 2 
 #define SM_MATCH_FINAL_LB_WEIGHT 0.5 /* the LB functions' weight in the hybrid final pass */
 #define SM_MATCH_ANCHOR 3.0       /* see "landmark anchoring" above and sm_match.c */
 #define SM_MATCH_ANCHOR_ORIENT 3.0 /* the same, for the landmarks' orientation features */
+#define SM_MATCH_HYP_ORIENT 1.0   /* the tip hypotheses' orientation features (sm_match.c) */
+#define SM_MATCH_CURV_WEIGHT 8.0  /* the judge's curvature agreement term (sm_match.c) */
+#define SM_MATCH_CURV_PASSES 10   /* its smoothing passes per 5,000 vertices */
 
 typedef struct sm_shape_opts {
   int k_lb;        /* LB functions (descriptors, coarse map, lb/hybrid refinement) */
@@ -187,6 +193,8 @@ typedef struct sm_match_result {
                                measured by the tip search only; 0 when it did not run */
   double turns;             /* turn agreement of T and T_yx (mean of both; sm_map_turns),
                                tip search only */
+  double curvature;         /* agreement of the shapes' smoothed mean curvatures through T
+                               (sm_map_field_agreement), tip search only */
   double t_init, t_refine;  /* seconds; t_init includes the tip search, t_refine is the
                                winning map's refinement */
   double final_lb_weight;   /* the LB functions' weight in the hybrid final pass that made

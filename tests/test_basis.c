@@ -465,10 +465,62 @@ static void test_cancel(void) {
   sm_mesh_destroy(m);
 }
 
+/* sm_mean_curvature against the analytic values: 1/r on a sphere of radius r (outward
+ * normals), (R + 2 r cos v) / (2 r (R + r cos v)) on a torus, negated when the faces turn
+ * inward; smoothing leaves a constant field alone. */
+static void test_mean_curvature(void) {
+  sm_error err;
+  sm_mesh *s = tm_icosphere(4);
+  REQUIRE(s);
+  double *H = malloc((size_t)s->nv * sizeof *H);
+  REQUIRE(H);
+  for (int scale = 1; scale <= 3; scale += 2) {
+    const double t0[3] = {0.5, 0, -1};
+    if (scale > 1) tm_rigid(s, 0.4, 0.2, -0.7, scale, t0);
+    double r = 0;
+    for (int d = 0; d < 3; d++) r += pow(s->V[d] - (scale > 1 ? t0[d] : 0), 2);
+    r = sqrt(r);
+    for (int passes = 0; passes <= 5; passes += 5) {
+      REQUIRE(sm_mean_curvature(s, passes, H, &err) == 0);
+      double worst = 0;
+      for (int32_t v = 0; v < s->nv; v++) worst = fmax(worst, fabs(H[v] * r - 1));
+      CHECK_MSG(worst < 0.02, "sphere radius %.3f, %d passes: worst relative error %.4f", r,
+                passes, worst);
+    }
+  }
+  for (int32_t f = 0; f < s->nf; f++) { /* inward normals */
+    int32_t t = s->F[3 * f + 1];
+    s->F[3 * f + 1] = s->F[3 * f + 2];
+    s->F[3 * f + 2] = t;
+  }
+  REQUIRE(sm_mean_curvature(s, 0, H, &err) == 0);
+  CHECK_MSG(H[0] < 0, "inward sphere: H = %.4f", H[0]);
+  free(H);
+  sm_mesh_destroy(s);
+
+  const double R = 3, rr = 1;
+  sm_mesh *t = tm_torus(96, 48, R, rr);
+  REQUIRE(t);
+  H = malloc((size_t)t->nv * sizeof *H);
+  REQUIRE(H && sm_mean_curvature(t, 0, H, &err) == 0);
+  double worst = 0;
+  for (int32_t v = 0; v < t->nv; v++) {
+    const double *p = t->V + 3 * (size_t)v;
+    double cv = (sqrt(p[0] * p[0] + p[1] * p[1]) - R) / rr;
+    double want = (R + 2 * rr * cv) / (2 * rr * (R + rr * cv));
+    worst = fmax(worst, fabs(H[v] - want));
+  }
+  /* The torus is built with outward normals; a flipped build would read -want. */
+  CHECK_MSG(worst < 0.02, "torus: worst error %.4f", worst);
+  free(H);
+  sm_mesh_destroy(t);
+}
+
 int main(void) {
   test_kernel_size_rule();
   test_bad_options();
   test_lb_sphere();
+  test_mean_curvature();
   test_repeated_eigenvalues();
   test_invariant_space();
   test_spare_threads();
