@@ -51,6 +51,7 @@
 
 #include "bench_util.h"
 #include "sm_coarse.h"
+#include "sm_alloc.h"
 #include "sm_confidence.h"
 #include "sm_eigs.h"
 #include "sm_global.h"
@@ -580,6 +581,7 @@ static void usage(void) {
 }
 
 int main(int argc, char **argv) {
+  sm_alloc_keep_large(); /* as the daemon and the CLI run (sm_alloc.h) */
   bench_cfg cfg = {.cache = "bench-cache", .global = -1, .extremities = -1,
                    .ext_below = -1, .bijective = -1,
                    .anchor = -1, .anchor_orient = -1, .final_choice = -1};

@@ -50,6 +50,7 @@
 
 #include "bench_util.h"
 #include "sm_deform.h"
+#include "sm_alloc.h"
 #include "sm_eigs.h"
 #include "sm_knn.h"
 #include "sm_match.h"
@@ -517,6 +518,7 @@ static void small_table(const char *pair, int with_direct, const int32_t *levels
 }
 
 int main(int argc, char **argv) {
+  sm_alloc_keep_large(); /* as the daemon and the CLI run (sm_alloc.h) */
   int reps = 3, direct = 0, small = 0, small_direct = 1, decimate = 0;
   const char *pair = NULL;
   int32_t coarse = 0, levels[MAX_LEVELS] = {4500, 5000, 5500};

@@ -40,6 +40,7 @@
 #include <unistd.h>
 
 #include "sm_eigs.h"
+#include "sm_alloc.h"
 #include "sm_match.h"
 #include "sm_meshio.h"
 #include "sm_metrics.h"
@@ -396,6 +397,7 @@ static void usage(const char *argv0) {
 }
 
 int main(int argc, char **argv) {
+  sm_alloc_keep_large(); /* as the daemon and the CLI run (sm_alloc.h) */
   int runs = 3, blas_threads = 1;
   const char *json = "bench_match.json", *maps_dir = NULL, *pairs_arg = NULL;
   for (int i = 1; i < argc; i++) {

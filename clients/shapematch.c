@@ -27,6 +27,7 @@
 #include <unistd.h>
 
 #include "sm_basis.h"
+#include "sm_alloc.h"
 #include "sm_eigs.h"
 #include "sm_meshio.h"
 #include "sm_shell.h"
@@ -1712,6 +1713,7 @@ static int cmd_synth(int argc, char **argv) {
 }
 
 int main(int argc, char **argv) {
+  sm_alloc_keep_large(); /* before any thread; why: sm_alloc.h */
   /* One BLAS thread unless OPENBLAS_NUM_THREADS says otherwise: our BLAS calls are small
    * (ARPACK's dgemv over n x ncv, per-supernode solves) and OpenBLAS threading costs more
    * than it gains on them. Measured on homerA k=100, 2 cores, load ~4: elastic eigensolve

@@ -11,6 +11,7 @@
 #include <unistd.h>
 
 #include "sm_shell.h"
+#include "sm_alloc.h"
 #include "sm_srv.h"
 #include "sm_srv_log.h"
 #include "sm_srv_loop.h"
@@ -274,6 +275,7 @@ static int parse_args(int argc, char **argv, sm_srv_config *c) {
 }
 
 int main(int argc, char **argv) {
+  sm_alloc_keep_large(); /* before any thread; why: sm_alloc.h */
   sm_server s;
   memset(&s, 0, sizeof s);
   sm_srv_config_default(&s.cfg);
