@@ -4,7 +4,9 @@
  *     basis -> WKS descriptors.
  *   match (per pair): coarse LB functional map from descriptors with the orientation term
  *     -> initial point map (nearest neighbour, or sparse Sinkhorn, between the aligned
- *     spectral embeddings) -> ZoomOut refinement in the lb, elastic or hybrid basis ->
+ *     spectral embeddings) -> soft Sinkhorn steps and ZoomOut refinement in the lb,
+ *     elastic or hybrid basis (both on farthest-point samples, the last ZoomOut iteration
+ *     on every vertex) ->
  *     point map X -> Y (and Y -> X), final functional map, orientation score.
  *   multi-start (option, off by default): the refinement is also run from the other initial map (nn
  *     if sinkhorn, and vice versa; on a second thread) and the map with the lower Dirichlet
