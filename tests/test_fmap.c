@@ -59,6 +59,21 @@ static int compare_knn(const double *Y, int ny, const double *X, int nx, int d, 
   return bad;
 }
 
+/* The same query without distances (dist NULL: brute force then skips the exact distance
+ * of a certified single nearest) must give the indices idx of the checked query. */
+static int same_without_dist(const sm_knn *ix, const double *X, int nx, int ny, int K,
+                             const int32_t *idx, const int32_t *iyx) {
+  int32_t *a = malloc((size_t)nx * K * sizeof *a), *b = malloc((size_t)ny * K * sizeof *b);
+  sm_error err;
+  int rc = iyx ? sm_knn_query_both(ix, X, nx, K, a, NULL, b, NULL, &err)
+               : sm_knn_query(ix, X, nx, K, a, NULL, &err);
+  int same = rc == 0 && !memcmp(a, idx, (size_t)nx * K * sizeof *a) &&
+             (!iyx || !memcmp(b, iyx, (size_t)ny * K * sizeof *b));
+  free(a);
+  free(b);
+  return same;
+}
+
 /* Brute-force query threads of run_knn and run_knn_both (test_knn_threads). */
 static int g_query_threads = 1;
 
@@ -80,6 +95,8 @@ static int run_knn(const double *Y, int ny, const double *X, int nx, int d, int 
   int bad = compare_knn(Y, ny, X, nx, d, K, idx, dist, exact_idx);
   CHECK_MSG(bad == 0, "strategy %d d=%d K=%d ny=%d: %d of %d rows differ", strat, d, K, ny, bad,
             nx);
+  CHECK_MSG(same_without_dist(ix, X, nx, ny, K, idx, NULL),
+            "strategy %d d=%d K=%d: no-distance query differs", strat, d, K);
   sm_knn_destroy(ix);
   free(idx);
   free(dist);
@@ -107,6 +124,8 @@ static int run_knn_both(const double *Y, int ny, const double *X, int nx, int d,
   CHECK_MSG(bad == 0 && bad_yx == 0,
             "two-way strategy %d d=%d K=%d nx=%d ny=%d: %d + %d rows differ", strat, d, K, nx,
             ny, bad, bad_yx);
+  CHECK_MSG(same_without_dist(ix, X, nx, ny, K, idx, iyx),
+            "two-way strategy %d d=%d K=%d: no-distance query differs", strat, d, K);
   sm_knn_destroy(ix);
   free(idx);
   free(iyx);
@@ -238,6 +257,8 @@ static void run_knn_factored(int ny, int dr, int d, int nx, int K, int dyadic, d
   CHECK_MSG(bad == 0 && bad2 == 0 && bad_yx == 0,
             "factored dr=%d d=%d K=%d dyadic=%d far=%g: %d / %d + %d rows differ", dr, d, K,
             dyadic, far, bad, bad2, bad_yx);
+  CHECK_MSG(same_without_dist(ix, X, nx, ny, K, idx, iyx),
+            "factored dr=%d d=%d K=%d dyadic=%d: no-distance query differs", dr, d, K, dyadic);
   sm_knn_destroy(ix);
   free(U), free(L), free(X), free(Y), free(idx), free(iyx), free(dist), free(dyx);
 }
