@@ -23,6 +23,7 @@
 #include <string.h>
 
 #include "sm_eigs.h" /* sm_now */
+#include "sm_par.h"
 
 /* ---- checks ------------------------------------------------------------------------- */
 
@@ -131,13 +132,14 @@ static int assign_both(const double *EY, int32_t ny, const double *EX, int32_t n
   return rc;
 }
 
-/* The same for candidates given as y_j = L u_j (sm_knn_build_factored): the bijective
- * embeddings, whose GEMM then runs on half the dimensions. */
-static int assign_both_factored(const double *U, int32_t ny, int dr, const double *L, int D,
-                                const double *EX, int32_t nx, const sm_knn_opts *ko,
-                                int32_t *T, int32_t *T_yx, sm_error *err) {
+/* The same for candidates given as y_j = L u_j (sm_knn_build_factored), with their rows
+ * EY = U L^T: the bijective embeddings, whose GEMM then runs on half the dimensions. */
+static int assign_both_factored(const double *U, int32_t ny, int dr, const double *L,
+                                const double *EY, int D, const double *EX, int32_t nx,
+                                const sm_knn_opts *ko, int32_t *T, int32_t *T_yx,
+                                sm_error *err) {
   sm_knn *ix = NULL;
-  int rc = sm_knn_build_factored(U, ny, dr, L, D, ko, &ix, err);
+  int rc = sm_knn_build_factored(U, ny, dr, L, D, EY, ko, &ix, err);
   if (!rc) rc = sm_knn_query_both(ix, EX, nx, 1, T, NULL, T_yx, NULL, err);
   sm_knn_destroy(ix);
   return rc;
@@ -354,9 +356,12 @@ typedef struct zctx {
   int32_t *Sfit;       /* global X indices; valid once have_s */
   int32_t *Sq;         /* Y -> query-row map of the last assignment (ncand or n_Y) */
   int have_s;
-  double *EX, *EY, *Z;
+  double *EX, *EY;
+  double *Z[2 * SM_FMAP_MAX_PAIRS]; /* fit scratch per fit job (one when on one thread) */
+  int nz, threads;
   double *LY;          /* bijective: D x D/2 map of the factored candidates (EY then holds
                         * their D/2 coordinates: y = LY u, see zembed) */
+  double *EYf;         /* bijective: the candidates' full D-wide rows LY u (zfactor) */
   sm_zoomout_stats st;
 } zctx;
 
@@ -383,7 +388,8 @@ static void zctx_free(zctx *z) {
   free(z->EX);
   free(z->EY);
   free(z->LY);
-  free(z->Z);
+  free(z->EYf);
+  for (int i = 0; i < z->nz; i++) free(z->Z[i]);
 }
 
 static int check_zoomout(const sm_fmap_pair *pairs, int np, const sm_zoomout_opts *o,
@@ -546,13 +552,18 @@ static int zsetup(zctx *z, const sm_fmap_pair *pairs, const int32_t *T0, sm_erro
   z->Tfit = malloc((size_t)z->nfit * sizeof(int32_t));
   z->EX = malloc((size_t)z->nx * z->Dmax * sizeof(double));
   z->EY = malloc((size_t)z->ny * z->Dmax * sizeof(double));
-  z->Z = malloc((size_t)zrows * Kmax * sizeof(double));
+  z->threads = z->o->threads > 1 ? z->o->threads : 1;
+  z->nz = z->threads > 1 ? (z->sqw_y ? 2 : 1) * z->np : 1;
+  int zok = 1;
+  for (int i = 0; i < z->nz; i++) zok &= (z->Z[i] = malloc((size_t)zrows * Kmax * sizeof(double))) != NULL;
   if (z->sqw_y) {
     z->Sfit = malloc((size_t)z->nfit_y * sizeof(int32_t));
     z->Sq = malloc((size_t)z->ny * sizeof(int32_t));
     z->LY = malloc((size_t)z->Dmax * (z->Dmax / 2) * sizeof(double));
+    z->EYf = malloc((size_t)z->ny * z->Dmax * sizeof(double));
   }
-  if (!z->Tfit || !z->EX || !z->EY || !z->Z || (z->sqw_y && (!z->Sfit || !z->Sq || !z->LY)))
+  if (!z->Tfit || !z->EX || !z->EY || !zok ||
+      (z->sqw_y && (!z->Sfit || !z->Sq || !z->LY || !z->EYf)))
     return sm_error_set(err, SM_ENOMEM, "zoomout: embeddings (%d + %d rows x %d)", z->nx, z->ny,
                         z->Dmax);
   for (int32_t s = 0; s < z->nfit; s++) z->Tfit[s] = T0[z->fit ? z->fit[s] : s];
@@ -562,37 +573,63 @@ static int zsetup(zctx *z, const sm_fmap_pair *pairs, const int32_t *T0, sm_erro
 
 /* P -> C in whitened coordinates on a fit set: W = G^-1 UF^T (sqrt(w) U_to[map]), k x k
  * column-major, carrying coefficients of the map's target side to the fit side's. */
-static int zlsq(zctx *z, int k, int K, int32_t nfit, const double *UF, const double *GF,
-                const double *sqw, const double *U_to, const int32_t *map, double *W,
-                sm_error *err) {
+/* Z: nfit x k scratch. Returns 0 or the failing dpotrs' info. */
+static int zlsq(double *Z, int k, int K, int32_t nfit, const double *UF, const double *GF,
+                const double *sqw, const double *U_to, const int32_t *map, double *W) {
   for (int32_t s = 0; s < nfit; s++) {
     const double *u = U_to + (size_t)map[s] * K;
-    for (int c = 0; c < k; c++) z->Z[(size_t)s * k + c] = sqw[s] * u[c];
+    for (int c = 0; c < k; c++) Z[(size_t)s * k + c] = sqw[s] * u[c];
   }
-  cblas_dgemm(CblasColMajor, CblasNoTrans, CblasTrans, k, k, nfit, 1.0, UF, K, z->Z, k, 0.0, W,
-              k);
-  if (!GF) return 0;
-  int info = LAPACKE_dpotrs(LAPACK_COL_MAJOR, 'L', k, k, GF, K, W, k);
-  return info ? sm_error_set(err, SM_ENUMERIC, "zoomout: dpotrs failed (info %d)", info) : 0;
+  cblas_dgemm(CblasColMajor, CblasNoTrans, CblasTrans, k, k, nfit, 1.0, UF, K, Z, k, 0.0, W, k);
+  return GF ? LAPACKE_dpotrs(LAPACK_COL_MAJOR, 'L', k, k, GF, K, W, k) : 0;
 }
 
-/* Cw from the X -> Y map on the X fit set; with a Y -> X map (bijective), Dw from it. */
-static int zfmap(zctx *z, zpair *q, sm_error *err) {
-  int rc = zlsq(z, q->k, q->K, z->nfit, q->UF, q->GF, z->sqw, q->UY, z->Tfit, q->Cw, err);
-  if (!rc && z->have_s)
-    rc = zlsq(z, q->k, q->K, z->nfit_y, q->UFy, q->GFy, z->sqw_y, q->UX, z->Sfit, q->Dw, err);
-  return rc;
+/* Fit job i of an iteration (sm_par_for). Bijective: pair i / 2, Cw from the X -> Y map on
+ * the X fit set (i even) or Dw from the Y -> X map on the Y fit set (i odd); otherwise Cw
+ * of pair i. */
+typedef struct zfit_jobs {
+  zctx *z;
+  int info[2 * SM_FMAP_MAX_PAIRS];
+} zfit_jobs;
+
+static void zfit_job(void *ctx, int i) {
+  zfit_jobs *j = ctx;
+  zctx *z = j->z;
+  zpair *q = &z->p[z->have_s ? i / 2 : i];
+  double *Z = z->Z[z->nz > 1 ? i : 0];
+  j->info[i] = !z->have_s || i % 2 == 0
+                   ? zlsq(Z, q->k, q->K, z->nfit, q->UF, q->GF, z->sqw, q->UY, z->Tfit, q->Cw)
+                   : zlsq(Z, q->k, q->K, z->nfit_y, q->UFy, q->GFy, z->sqw_y, q->UX, z->Sfit,
+                          q->Dw);
+}
+
+/* Every pair's fit(s) at its current k, on z->threads threads: the pairs' two directions
+ * and the pairs themselves are independent least-squares problems. */
+static int zfmap_all(zctx *z, sm_error *err) {
+  zfit_jobs j = {.z = z};
+  int n = z->have_s ? 2 * z->np : z->np;
+  sm_par_for(n, z->threads, zfit_job, &j);
+  for (int i = 0; i < n; i++)
+    if (j.info[i])
+      return sm_error_set(err, SM_ENUMERIC, "zoomout: dpotrs failed (info %d)", j.info[i]);
+  return 0;
 }
 
 /* The bijective candidates [w Cw u, w wb u] per pair as y = LY u (LY: D x D/2, row-major,
  * block p at rows off.., columns roff..; u: the pairs' coordinates side by side in EY,
- * D/2 wide), so that the assignment's GEMM runs on D/2 dimensions. */
-static void zfactor(zctx *z, const zpair *q, const double *UY, int32_t nc, int D, int off,
+ * D/2 wide), so that the assignment's GEMM runs on D/2 dimensions; and the rows y
+ * themselves in EYf (for the exact distances), formed block by block: the generic U LY^T
+ * would multiply every u by the zeros of LY as well. */
+static void zfactor(const zctx *z, const zpair *q, const double *UY, int32_t nc, int D, int off,
                     int roff) {
   int dr = D / 2, k = q->k;
   double wb = z->o->bijective;
   for (int32_t r = 0; r < nc; r++)
     memcpy(z->EY + (size_t)r * dr + roff, UY + (size_t)r * q->K, (size_t)k * sizeof(double));
+  apply_map(UY, q->K, nc, k, q->Cw, q->w, z->EYf + off, D);
+  for (int32_t r = 0; r < nc; r++)
+    for (int c = 0; c < k; c++)
+      z->EYf[(size_t)r * D + off + k + c] = q->w * wb * UY[(size_t)r * q->K + c];
   for (int c = 0; c < k; c++) {
     double *row = z->LY + (size_t)(off + c) * dr + roff; /* (w Cw)(c, :) */
     for (int i = 0; i < k; i++) row[i] = q->w * q->Cw[(size_t)i * k + c];
@@ -619,30 +656,49 @@ static void zembed_features(zctx *z, int32_t nq, int full_q, int32_t nc, int ful
  * all Y when full_c): a_i = u^X_i against b_j = Cw u^Y_j; once a Y -> X map exists
  * (bijective), [a_i, wb Dw a_i] against [b_j, wb u^Y_j], the candidates factored
  * (zfactor). */
-static void zembed(zctx *z, int full_q, int full_c, int D) {
-  int32_t nq = full_q || !z->fit ? z->nx : z->nfit;
-  int32_t nc = full_c || !z->cand ? z->ny : z->ncand;
-  double wb = z->o->bijective;
-  if (z->have_s) memset(z->LY, 0, (size_t)D * (D / 2) * sizeof(double));
-  for (int p = 0, off = 0, roff = 0; p < z->np; p++) {
-    const zpair *q = &z->p[p];
+typedef struct zembed_jobs {
+  zctx *z;
+  int full_q, full_c, D;
+  int off[SM_FMAP_MAX_PAIRS], roff[SM_FMAP_MAX_PAIRS]; /* pair p's columns in EX/EY, LY */
+} zembed_jobs;
+
+/* Embedding job i (sm_par_for): pair i / 2's columns of the queries (i even) or of the
+ * candidates (i odd); the pairs and the sides write disjoint columns. */
+static void zembed_job(void *ctx, int i) {
+  const zembed_jobs *j = ctx;
+  zctx *z = j->z;
+  const zpair *q = &z->p[i / 2];
+  int D = j->D, off = j->off[i / 2];
+  if (i % 2 == 0) {
+    int32_t nq = j->full_q || !z->fit ? z->nx : z->nfit;
     for (int32_t r = 0; r < nq; r++) {
-      int32_t v = full_q || !z->fit ? r : z->fit[r];
+      int32_t v = j->full_q || !z->fit ? r : z->fit[r];
       const double *u = q->UX + (size_t)v * q->K;
       double *e = z->EX + (size_t)r * D + off;
       for (int c = 0; c < q->k; c++) e[c] = q->w * u[c];
     }
-    const double *UY = full_c || !z->cand ? q->UY : q->UYc;
-    if (!z->have_s) {
-      apply_map(UY, q->K, nc, q->k, q->Cw, q->w, z->EY + off, D);
-      off += q->k;
-      continue;
-    }
-    apply_map(z->EX + off, D, nq, q->k, q->Dw, wb, z->EX + off + q->k, D);
-    zfactor(z, q, UY, nc, D, off, roff);
-    off += 2 * q->k;
-    roff += q->k;
+    if (z->have_s)
+      apply_map(z->EX + off, D, nq, q->k, q->Dw, z->o->bijective, z->EX + off + q->k, D);
+    return;
   }
+  int32_t nc = j->full_c || !z->cand ? z->ny : z->ncand;
+  const double *UY = j->full_c || !z->cand ? q->UY : q->UYc;
+  if (z->have_s) zfactor(z, q, UY, nc, D, off, j->roff[i / 2]);
+  else apply_map(UY, q->K, nc, q->k, q->Cw, q->w, z->EY + off, D);
+}
+
+static void zembed(zctx *z, int full_q, int full_c, int D) {
+  zembed_jobs j = {.z = z, .full_q = full_q, .full_c = full_c, .D = D};
+  for (int p = 0, off = 0, roff = 0; p < z->np; p++) {
+    j.off[p] = off;
+    j.roff[p] = roff;
+    off += z->have_s ? 2 * z->p[p].k : z->p[p].k;
+    roff += z->p[p].k;
+  }
+  if (z->have_s) memset(z->LY, 0, (size_t)D * (D / 2) * sizeof(double));
+  sm_par_for(2 * z->np, z->threads, zembed_job, &j);
+  int32_t nq = full_q || !z->fit ? z->nx : z->nfit;
+  int32_t nc = full_c || !z->cand ? z->ny : z->ncand;
   zembed_features(z, nq, full_q, nc, full_c, D);
 }
 
@@ -662,11 +718,11 @@ static void zkeep_yx(zctx *z, int full_q, int full_c) {
 static int ziterate(zctx *z, int t, int32_t *T, sm_error *err) {
   int last = t == z->niter - 1, full_c = t >= z->niter - z->full_y_last, D = 0, rc = 0;
   double t0 = sm_now();
-  for (int p = 0; p < z->np && !rc; p++) {
+  for (int p = 0; p < z->np; p++) {
     z->p[p].k = k_at(z, p, t);
     D += z->have_s ? 2 * z->p[p].k : z->p[p].k;
-    rc = zfmap(z, &z->p[p], err);
   }
+  rc = zfmap_all(z, err);
   D += z->o->nfeat;
   if (rc) return rc;
   double t1 = sm_now();
@@ -676,8 +732,8 @@ static int ziterate(zctx *z, int t, int32_t *T, sm_error *err) {
   int32_t nc = full_c || !z->cand ? z->ny : z->ncand;
   int32_t *out = last ? T : z->Tfit;
   if (z->Sq) { /* bijective: both ways every time, the Y -> X map feeds the next fit */
-    rc = z->have_s ? assign_both_factored(z->EY, nc, D / 2, z->LY, D, z->EX, nq, &z->o->knn, out,
-                                          z->Sq, err)
+    rc = z->have_s ? assign_both_factored(z->EY, nc, D / 2, z->LY, z->EYf, D, z->EX, nq,
+                                          &z->o->knn, out, z->Sq, err)
                    : assign_both(z->EY, nc, z->EX, nq, D, &z->o->knn, out, z->Sq, err);
     if (!rc && !full_c && z->cand)
       for (int32_t i = 0; i < nq; i++) out[i] = z->cand[out[i]];

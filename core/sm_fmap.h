@@ -130,6 +130,9 @@ typedef struct sm_zoomout_opts {
   int nfeat;
   double feat_w;
   sm_knn_opts knn;       /* nearest-neighbour strategy */
+  int threads;           /* the pairs' fits and embeddings of an iteration run on this many
+                          * threads (0 = 1; the kNN's own: knn.query_threads). The maps do
+                          * not depend on it. */
   int (*cancel)(void *ud);
   void *cancel_ud;
 } sm_zoomout_opts;

@@ -81,6 +81,7 @@ struct sm_knn {
   int d;
   int ds;          /* brute: dimension of the screening product (d, or dr when factored) */
   double *Y;       /* caller's points, copied (exact distances are taken on these) */
+  int y_borrowed;  /* factored with the caller's Y: Y is the caller's, not freed here */
   float *Ya;       /* brute: rows [-2 yc_j, |yc_j|^2], yc_j = s (y_j - center), ds + 1 wide;
                     * factored: [-2 s (u_j - ubar), |yc_j|^2] */
   double *L;       /* factored: the d x dr map (row-major), y = L u; NULL otherwise */
@@ -231,15 +232,16 @@ static int build_flann(sm_knn *ix, const sm_knn_opts *o, sm_error *err) {
 }
 
 /* A new index of ny points in d dimensions, screened in ds, with room for the points (Y)
- * but nothing built; NULL when out of memory. */
-static sm_knn *knn_new(int32_t ny, int d, int ds, const sm_knn_opts *o) {
+ * but nothing built, or borrowing the caller's Y when given; NULL when out of memory. */
+static sm_knn *knn_new(int32_t ny, int d, int ds, const double *Y, const sm_knn_opts *o) {
   sm_knn *ix = calloc(1, sizeof *ix);
   if (!ix) return NULL;
   ix->ny = ny;
   ix->d = d;
   ix->ds = ds;
   ix->threads = o && o->query_threads > 1 ? o->query_threads : 1;
-  ix->Y = malloc((size_t)ny * d * sizeof(double));
+  ix->y_borrowed = Y != NULL;
+  ix->Y = Y ? (double *)Y : malloc((size_t)ny * d * sizeof(double));
   if (!ix->Y) {
     free(ix);
     return NULL;
@@ -261,7 +263,7 @@ int sm_knn_build(const double *Y, int32_t ny, int d, const sm_knn_opts *o, sm_kn
     return sm_error_set(err, SM_EINVAL, "knn: unknown strategy %d", o->strategy);
   int rc = check_finite(Y, (int64_t)ny * d, "Y", err);
   if (rc) return rc;
-  sm_knn *ix = knn_new(ny, d, d, o);
+  sm_knn *ix = knn_new(ny, d, d, NULL, o);
   if (!ix) return sm_error_set(err, SM_ENOMEM, "knn: copy of %d x %d points", ny, d);
   int cross = o->crossover_d > 0 ? o->crossover_d : SM_KNN_CROSSOVER_D;
   ix->strategy = o->strategy != SM_KNN_AUTO ? o->strategy
@@ -278,7 +280,7 @@ int sm_knn_build(const double *Y, int32_t ny, int d, const sm_knn_opts *o, sm_kn
 }
 
 int sm_knn_build_factored(const double *U, int32_t ny, int dr, const double *L, int d,
-                          const sm_knn_opts *o, sm_knn **out, sm_error *err) {
+                          const double *Y, const sm_knn_opts *o, sm_knn **out, sm_error *err) {
   *out = NULL;
   if (!U || !L || ny < 1 || dr < 1 || d < 1)
     return sm_error_set(err, SM_EINVAL, "knn: bad factored point set (ny=%d, dr=%d, d=%d)", ny,
@@ -286,7 +288,7 @@ int sm_knn_build_factored(const double *U, int32_t ny, int dr, const double *L, 
   int rc = check_finite(U, (int64_t)ny * dr, "U", err);
   if (!rc) rc = check_finite(L, (int64_t)d * dr, "L", err);
   if (rc) return rc;
-  sm_knn *ix = knn_new(ny, d, dr, o);
+  sm_knn *ix = knn_new(ny, d, dr, Y, o);
   if (ix) ix->strategy = SM_KNN_BRUTE;
   if (ix) ix->L = malloc((size_t)d * dr * sizeof(double));
   if (!ix || !ix->L) {
@@ -294,8 +296,9 @@ int sm_knn_build_factored(const double *U, int32_t ny, int dr, const double *L, 
     return sm_error_set(err, SM_ENOMEM, "knn: factored index of %d x %d", ny, d);
   }
   memcpy(ix->L, L, (size_t)d * dr * sizeof(double));
-  cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasTrans, ny, d, dr, 1.0, U, dr, L, dr, 0.0, ix->Y,
-              d);
+  if (!Y)
+    cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasTrans, ny, d, dr, 1.0, U, dr, L, dr, 0.0,
+                ix->Y, d);
   rc = check_finite(ix->Y, (int64_t)ny * d, "Y = U L^T", err);
   if (!rc) rc = build_brute(ix, U, err);
   if (rc) {
@@ -313,7 +316,7 @@ void sm_knn_destroy(sm_knn *ix) {
     flann_free_index_double(ix->flann, &ix->fp);
     pthread_mutex_unlock(&flann_lock);
   }
-  free(ix->Y);
+  if (!ix->y_borrowed) free(ix->Y);
   free(ix->Ya);
   free(ix->L);
   free(ix->center);

@@ -612,6 +612,7 @@ static int refine_with(const sm_shape *x, const sm_shape *y, const sm_match_opts
     zo.feat_w = 1; /* landmark_features weighs its columns */
   }
   zo.knn = match_knn(o);
+  zo.threads = o->threads;
   shape_fps(x, zo.nsample_x, &zo.samples_x, &zo.cellw_x);
   shape_fps(y, zo.nsample_y, &zo.samples_y, &zo.cellw_y);
   zo.cancel = o->cancel;

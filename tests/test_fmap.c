@@ -224,9 +224,11 @@ static void test_knn_scales(void) {
 
 /* A factored index (y = L u) against the naive search on Y = U L^T, one-way and two-way.
  * Dyadic entries (dyadic = 1) make Y exact whatever the summation order, and put many
- * points at equal distances; otherwise Y comes from the same dgemm the index uses. */
-static void run_knn_factored(int ny, int dr, int d, int nx, int K, int dyadic, double far,
-                             uint64_t *s) {
+ * points at equal distances; otherwise Y comes from the same dgemm the index uses, or,
+ * with caller_y, from a plain loop in reverse order (rounded differently) that the index
+ * borrows: the answers must be exact for that Y. */
+static void run_knn_factored_y(int ny, int dr, int d, int nx, int K, int dyadic, double far,
+                               int caller_y, uint64_t *s) {
   double *U = random_points(ny, dr, -1, 1, s), *L = random_points(d, dr, -1, 1, s);
   double *X = random_points(nx, d, -1, 1, s), *Y = malloc((size_t)ny * d * sizeof *Y);
   if (dyadic) {
@@ -237,6 +239,12 @@ static void run_knn_factored(int ny, int dr, int d, int nx, int K, int dyadic, d
   for (int i = 0; i < nx; i += 3)
     for (int t = 0; t < d; t++) X[(size_t)i * d + t] *= far; /* every third row far out */
   cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasTrans, ny, d, dr, 1.0, U, dr, L, dr, 0.0, Y, d);
+  for (int j = 0; caller_y && j < ny; j++)
+    for (int t = 0; t < d; t++) {
+      double v = 0;
+      for (int q = dr - 1; q >= 0; q--) v += L[(size_t)t * dr + q] * U[(size_t)j * dr + q];
+      Y[(size_t)j * d + t] = v;
+    }
   int32_t *idx = malloc((size_t)nx * K * sizeof *idx), *iyx = malloc((size_t)ny * K * sizeof *iyx);
   double *dist = malloc((size_t)nx * K * sizeof *dist), *dyx = malloc((size_t)ny * K * sizeof *dyx);
   sm_knn *ix = NULL;
@@ -244,7 +252,7 @@ static void run_knn_factored(int ny, int dr, int d, int nx, int K, int dyadic, d
   sm_knn_opts ko;
   sm_knn_opts_default(&ko);
   ko.query_threads = g_query_threads;
-  int rc = sm_knn_build_factored(U, ny, dr, L, d, &ko, &ix, &err);
+  int rc = sm_knn_build_factored(U, ny, dr, L, d, caller_y ? Y : NULL, &ko, &ix, &err);
   if (!rc) rc = sm_knn_query(ix, X, nx, K, idx, dist, &err);
   if (rc) fprintf(stderr, "knn factored: %s\n", err.msg);
   REQUIRE(rc == 0);
@@ -255,16 +263,23 @@ static void run_knn_factored(int ny, int dr, int d, int nx, int K, int dyadic, d
   int bad2 = compare_knn(Y, ny, X, nx, d, K, idx, dist, 1);
   int bad_yx = compare_knn(X, nx, Y, ny, d, K, iyx, dyx, 1);
   CHECK_MSG(bad == 0 && bad2 == 0 && bad_yx == 0,
-            "factored dr=%d d=%d K=%d dyadic=%d far=%g: %d / %d + %d rows differ", dr, d, K,
-            dyadic, far, bad, bad2, bad_yx);
+            "factored dr=%d d=%d K=%d dyadic=%d far=%g caller_y=%d: %d / %d + %d rows differ",
+            dr, d, K, dyadic, far, caller_y, bad, bad2, bad_yx);
   CHECK_MSG(same_without_dist(ix, X, nx, ny, K, idx, iyx),
             "factored dr=%d d=%d K=%d dyadic=%d: no-distance query differs", dr, d, K, dyadic);
   sm_knn_destroy(ix);
   free(U), free(L), free(X), free(Y), free(idx), free(iyx), free(dist), free(dyx);
 }
 
+static void run_knn_factored(int ny, int dr, int d, int nx, int K, int dyadic, double far,
+                             uint64_t *s) {
+  run_knn_factored_y(ny, dr, d, nx, K, dyadic, far, 0, s);
+}
+
 static void test_knn_factored(void) {
   uint64_t s = 4711;
+  run_knn_factored_y(2100, 40, 80, 300, 1, 0, 1, 1, &s);
+  run_knn_factored_y(1500, 12, 24, 200, 3, 0, 1e3, 1, &s);
   run_knn_factored(2100, 20, 40, 300, 1, 0, 1, &s);
   run_knn_factored(2100, 50, 100, 301, 3, 0, 1, &s);
   run_knn_factored(1500, 7, 31, 200, 5, 0, 1, &s);
@@ -275,9 +290,9 @@ static void test_knn_factored(void) {
   double U[4] = {0, 1, 2, 3}, L[2] = {1, 0};
   sm_knn *ix = NULL;
   sm_error err;
-  CHECK(sm_knn_build_factored(U, 4, 1, L, 0, NULL, &ix, &err) == SM_EINVAL && !ix);
+  CHECK(sm_knn_build_factored(U, 4, 1, L, 0, NULL, NULL, &ix, &err) == SM_EINVAL && !ix);
   U[2] = NAN;
-  CHECK(sm_knn_build_factored(U, 4, 1, L, 2, NULL, &ix, &err) == SM_ENONFINITE && !ix);
+  CHECK(sm_knn_build_factored(U, 4, 1, L, 2, NULL, NULL, &ix, &err) == SM_ENONFINITE && !ix);
 }
 
 /* Query rows split over threads (whole blocks of 256 rows; >= 2^20 pairs): the same
@@ -680,6 +695,47 @@ static void test_zoomout_permuted(void) {
   free_pair(&s);
 }
 
+/* The fits and embeddings of the pairs on several threads (sm_zoomout_opts.threads, the
+ * kNN's query threads too) give the maps and functional maps of one thread, bit for bit:
+ * hybrid, plain and bijective, from a noisy start, intermediate iterations on samples. */
+static void test_zoomout_threads(void) {
+  shape_pair s = make_permuted(3, 40);
+  sm_fmap_pair pr[2] = {{s.lbx, s.lby, 40, 6, 1.0}, {s.elx, s.ely, 30, 6, 0.7}};
+  int32_t n = s.mx->nv;
+  for (int b = 0; b < 2; b++) {
+    int32_t *T[3], *Tyx[3];
+    double C[3][2][40 * 40];
+    memset(C, 0, sizeof C); /* pair 1 fills 30 x 30 of its 40 x 40 */
+    for (int th = 1; th <= 3; th++) {
+      T[th - 1] = malloc((size_t)n * sizeof(int32_t));
+      Tyx[th - 1] = malloc((size_t)n * sizeof(int32_t));
+      noisy_start(s.mx, s.truth, 0.3, 99, T[th - 1]);
+      sm_zoomout_opts o;
+      sm_zoomout_opts_default(&o);
+      o.nsample_x = o.nsample_y = 300;
+      o.pos_x = s.mx->V;
+      o.pos_y = s.my->V;
+      o.bijective = b;
+      o.threads = th;
+      o.knn.query_threads = th;
+      double *Cs[2] = {C[th - 1][0], C[th - 1][1]};
+      sm_error err;
+      REQUIRE(sm_zoomout(pr, 2, &o, T[th - 1], T[th - 1], Cs, Tyx[th - 1], NULL, &err) == 0);
+    }
+    for (int th = 2; th <= 3; th++) {
+      CHECK_MSG(!memcmp(T[0], T[th - 1], (size_t)n * sizeof(int32_t)) &&
+                    !memcmp(Tyx[0], Tyx[th - 1], (size_t)n * sizeof(int32_t)) &&
+                    !memcmp(C[0], C[th - 1], sizeof C[0]),
+                "zoomout bij %d: %d threads differ from one", b, th);
+    }
+    for (int th = 0; th < 3; th++) {
+      free(T[th]);
+      free(Tyx[th]);
+    }
+  }
+  free_pair(&s);
+}
+
 /* Fixed features (sm_zoomout_opts.feat_*) decide the assignment when their weight
  * dominates: features that name another bijection W of the blob onto its permuted copy
  * (row W[i] of feat_y = row i of feat_x = X's position of i) must make ZoomOut return W
@@ -785,6 +841,7 @@ int main(void) {
   test_p2p_formula();
   test_classic_equivalence();
   test_zoomout_permuted();
+  test_zoomout_threads();
   test_zoomout_features();
   test_zoomout_errors();
   return sm_test_finish();
