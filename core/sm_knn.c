@@ -983,6 +983,41 @@ static void *both_job_run(void *arg) {
   return NULL;
 }
 
+/* Float rows of a two-way query's rows i0 .. i1 - 1 (positions; xrow maps them to X's
+ * rows) into ws0, with the job's own factored workspace Xd; run_jobs splits them. */
+typedef struct screen_job {
+  const sm_knn *ix;
+  const double *X;
+  const int32_t *xrow;
+  brute_ws *w0;
+  double *Xd;
+  int32_t i0, i1, bad;
+} screen_job;
+
+static void *screen_job_run(void *arg) {
+  screen_job *j = arg;
+  int ds = j->ix->ds;
+  j->bad = screen_rows(j->ix, j->X, j->xrow + j->i0, j->i1 - j->i0,
+                       j->w0->Xc + (size_t)j->i0 * (ds + 1), j->w0->xn + j->i0,
+                       j->w0->sn + j->i0, j->Xd);
+  return NULL;
+}
+
+/* Every query row's float row, the rows split over the query's threads (each row's values
+ * do not depend on the split). Returns how many rows are not screenable. */
+static int32_t screen_all(const sm_knn *ix, const double *X, const int32_t *xrow, int32_t nx,
+                          brute_ws *ws, int n) {
+  screen_job jobs[KNN_MAX_THREADS];
+  for (int t = 0; t < n; t++) {
+    jobs[t] = (screen_job){ix, X, xrow, &ws[0], ws[t].Xd, 0, 0, 0};
+    part_rows(nx, t, n, &jobs[t].i0, &jobs[t].i1);
+  }
+  run_jobs(screen_job_run, jobs, sizeof *jobs, n);
+  int32_t bad = 0;
+  for (int t = 0; t < n; t++) bad += jobs[t].bad;
+  return bad;
+}
+
 /* Workspaces of a two-way query: ws[0] holds every query row's float row; the others
  * read it and keep their own GEMM block, row lists and column lists. */
 static int both_ws_alloc(brute_ws *ws, int n, const sm_knn *ix, int32_t nx, int cap,
@@ -1005,7 +1040,7 @@ static int query_both_brute(const sm_knn *ix, const double *X, int32_t nx, int K
   int32_t *xrow = scan_order(nx); /* the rows in scan order too, for the columns' lists */
   int rc = both_ws_alloc(ws, n, ix, nx, cap, capc);
   if (!xrow) rc = -1;
-  if (!rc && screen_rows(ix, X, xrow, nx, ws[0].Xc, ws[0].xn, ws[0].sn, ws[0].Xd)) rc = 1;
+  if (!rc && screen_all(ix, X, xrow, nx, ws, n)) rc = 1;
   if (rc) {
     for (int t = 0; t < n; t++) brute_ws_free(&ws[t]);
     free(xrow);
