@@ -296,12 +296,14 @@ static void test_knn_factored(void) {
 }
 
 /* Query rows split over threads (whole blocks of 256 rows; >= 2^20 pairs): the same
- * exact answers, ties included (the merged column lists must keep the lowest row). */
+ * exact answers, ties included (the merged column lists must keep the lowest row). A
+ * two-way query splits only from 8 product dimensions per column-list entry (K + 4): d =
+ * 100 and the factored dr = 48 / 64 below take that path, d = 20 the one-thread one. */
 static void test_knn_threads(void) {
   uint64_t s = 31337;
   for (int th = 2; th <= 3; th++) {
     g_query_threads = th;
-    for (int d = 20; d <= 60; d += 40) {
+    for (int d = 20; d <= 100; d += 80) {
       int ny = 1900, nx = 1100;
       double *Y = random_points(ny, d, -1, 1, &s), *X = random_points(nx, d, -1, 1, &s);
       run_knn(Y, ny, X, nx, d, 3, SM_KNN_BRUTE, 1);
@@ -314,8 +316,8 @@ static void test_knn_threads(void) {
       free(Y);
       free(X);
     }
-    run_knn_factored(2000, 30, 60, 1300, 1, 0, 1, &s);
-    run_knn_factored(2000, 16, 32, 1300, 3, 1, 1, &s);
+    run_knn_factored(2000, 48, 96, 1300, 1, 0, 1, &s);
+    run_knn_factored(2000, 64, 128, 1300, 3, 1, 1, &s);
   }
   g_query_threads = 1;
 }
