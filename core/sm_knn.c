@@ -836,8 +836,8 @@ static void brute_rows(const sm_knn *ix, brute_ws *w, const float *Xc, const dou
 
 enum { KNN_MAX_THREADS = 8, PAR_MIN_WORK = 1 << 20 /* query rows x points */ };
 /* Two-way queries split over threads only from this many product dimensions per column
- * list entry (query_both_brute). */
-enum { MIN_DS_PER_LIST = 8 };
+ * list entry, or from this many query rows (query_both_brute). */
+enum { MIN_DS_PER_LIST = 8, MIN_ROWS_SPLIT = 10000 };
 
 /* Runs fn on jobs[0 .. n-1] (each `size` bytes): n - 1 new threads and the caller; a job
  * whose thread cannot start runs on the caller afterwards. */
@@ -1040,11 +1040,14 @@ static int query_both_brute(const sm_knn *ix, const double *X, int32_t nx, int K
   int cap = K + SCREEN_EXTRA < ix->ny ? K + SCREEN_EXTRA : ix->ny;
   int capc = K + SCREEN_EXTRA < nx ? K + SCREEN_EXTRA : nx;
   /* Split rows share the GEMM but not the column lists: each thread fills its own list for
-   * every Y point, and the lists are merged after. That pays only when the product
-   * dominates the list work: homer's Sinkhorn supports (K = 16, d = 20 on 5,103 x 8,018;
-   * d = 20 and 60 on 2,000 x 2,000) took 0.09-0.10 / 0.018 / 0.024 s on one thread and
-   * 0.11-0.15 / 0.025 / 0.027 s on two; ZoomOut's (K = 1, d = 100-400) 0.89 -> 0.57 s. */
-  if (ds < MIN_DS_PER_LIST * capc) n = 1;
+   * every Y point, and the lists are merged after. That pays when the product dominates
+   * the list work: homer's Sinkhorn supports (K = 16, d = 20 on 5,103 x 8,018; d = 20 and
+   * 60 on 2,000 x 2,000) took 0.09-0.10 / 0.018 / 0.024 s on one thread and 0.11-0.15 /
+   * 0.025 / 0.027 s on two; ZoomOut's (K = 1, d = 100-400) 0.89 -> 0.57 s. Or when there
+   * are many rows (the lists' fill grows as the log of the rows, the scans linearly): the
+   * head pair's (15,000 x 14,118, d = 20) initial map took 0.46 s with two threads, 0.68 s
+   * with one. */
+  if (ds < MIN_DS_PER_LIST * capc && nx < MIN_ROWS_SPLIT) n = 1;
   brute_ws ws[KNN_MAX_THREADS];
   int32_t *xrow = scan_order(nx); /* the rows in scan order too, for the columns' lists */
   int rc = both_ws_alloc(ws, n, ix, nx, cap, capc);
