@@ -701,7 +701,8 @@ static int cpu_has_avx2(void) {
 #endif
 
 /* Scans one GEMM block (query rows at positions i0 .. i0 + bx - 1, the query row at
- * position i being xrow[i] (NULL: i); Y points at scan positions j0 .. j0 + by - 1),
+ * position i being xrow[i] (NULL: i); Y points at scan positions j0 .. j0 + by - 1) into
+ * the rows' lists (cap > 0) and the columns' (w->cols allocated),
  * zeroing each row while it is in cache so that the next GEMM can accumulate (beta = 1):
  * with beta = 0 OpenBLAS clears C in a separate pass, which cost half as much as the GEMM
  * itself at d = 20. */
@@ -712,7 +713,7 @@ static void scan_block(brute_ws *w, const sm_knn *ix, const int32_t *xrow, const
     for (int r = 0; r < bx; r++) {
       float *g = w->G + (size_t)r * by;
       int32_t i = xrow ? xrow[i0 + r] : i0 + r;
-      scan_row_avx2(&w->rows, cap, r, g, ix->ypos, j0, by);
+      if (cap) scan_row_avx2(&w->rows, cap, r, g, ix->ypos, j0, by);
       if (w->cols.lv) scan_cols_avx2(&w->cols, capc, i, (float)xn[r], g, j0, by);
       memset(g, 0, (size_t)by * sizeof(float));
     }
@@ -722,7 +723,7 @@ static void scan_block(brute_ws *w, const sm_knn *ix, const int32_t *xrow, const
   for (int r = 0; r < bx; r++) {
     float *g = w->G + (size_t)r * by;
     int32_t i = xrow ? xrow[i0 + r] : i0 + r;
-    scan_row(&w->rows, cap, r, g, ix->ypos, j0, by);
+    if (cap) scan_row(&w->rows, cap, r, g, ix->ypos, j0, by);
     if (w->cols.lv) scan_cols(&w->cols, capc, i, (float)xn[r], g, j0, by);
     memset(g, 0, (size_t)by * sizeof(float));
   }
@@ -808,12 +809,12 @@ static void fill_row(const void *vctx, float *vec) {
 
 /* Query rows at positions i0 .. i0 + bx - 1 (row xrow[i], NULL: i; their float rows Xc,
  * constants xn and bound parts sn) against all of Y: GEMM blocks, scans, then the exact K
- * nearest of each row. */
+ * nearest of each row. idx NULL: only the column lists of w are filled. */
 static void brute_rows(const sm_knn *ix, brute_ws *w, const float *Xc, const double *xn,
                        const double *sn, const double *X, const int32_t *xrow, int32_t i0,
                        int bx, int K, int cap, int capc, int32_t *idx, double *dist2) {
   int d = ix->d, ds = ix->ds;
-  for (int r = 0; r < bx; r++) {
+  for (int r = 0; r < bx && idx; r++) {
     w->rows.cnt[r] = 0;
     w->rows.thr[r] = INFINITY;
   }
@@ -821,9 +822,9 @@ static void brute_rows(const sm_knn *ix, brute_ws *w, const float *Xc, const dou
     int by = ix->ny - j0 < BLK_Y ? ix->ny - j0 : BLK_Y;
     cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasTrans, bx, by, ds + 1, 1.0f, Xc, ds + 1,
                 ix->Ya + (size_t)j0 * (ds + 1), ds + 1, 1.0f, w->G, by);
-    scan_block(w, ix, xrow, xn, bx, i0, j0, by, cap, capc);
+    scan_block(w, ix, xrow, xn, bx, i0, j0, by, idx ? cap : 0, capc);
   }
-  for (int r = 0; r < bx; r++) {
+  for (int r = 0; r < bx && idx; r++) {
     row_fill c = {ix, Xc + (size_t)r * (ds + 1)};
     size_t i = (size_t)(xrow ? xrow[i0 + r] : i0 + r);
     finish_list(w, ix->Y, ix->ny, d, X + i * d, w->rows.lv + (size_t)r * cap,
@@ -948,9 +949,9 @@ static void merge_lists(screen_lists *a, const screen_lists *b, int32_t n, int c
   }
 }
 
-/* Two-way: rows i0 .. i1 - 1 into the job's row results and its own column lists (phase
- * 0), then (phase 1) the exact nearest query rows of Y points j0 .. j1 - 1 from the merged
- * lists of ws0. */
+/* Two-way: rows i0 .. i1 - 1 into the job's row results (idx NULL: none) and its own
+ * column lists (if its workspace has them) (phase 0), then (phase 1) the exact nearest
+ * query rows of Y points j0 .. j1 - 1 from the merged lists of ws0. */
 typedef struct both_job {
   const sm_knn *ix;
   const double *X;
@@ -1021,13 +1022,14 @@ static int32_t screen_all(const sm_knn *ix, const double *X, const int32_t *xrow
   return bad;
 }
 
-/* Workspaces of a two-way query: ws[0] holds every query row's float row; the others
- * read it and keep their own GEMM block, row lists and column lists. */
+/* Workspaces of a two-way query: ws[0] holds every query row's float row and column
+ * lists; the others read its float rows and keep their own GEMM block, row lists and
+ * (unless the directions are split) column lists. */
 static int both_ws_alloc(brute_ws *ws, int n, const sm_knn *ix, int32_t nx, int cap,
-                         int capc) {
+                         int capc, int split_dirs) {
   int rc = brute_ws_alloc(&ws[0], ix, nx, nx, cap, capc, 1);
   for (int t = 1; t < n; t++)
-    if (brute_ws_alloc(&ws[t], ix, nx, 0, cap, capc, 1)) rc = -1;
+    if (brute_ws_alloc(&ws[t], ix, nx, 0, cap, capc, !split_dirs)) rc = -1;
   return rc;
 }
 
@@ -1041,16 +1043,19 @@ static int query_both_brute(const sm_knn *ix, const double *X, int32_t nx, int K
   int capc = K + SCREEN_EXTRA < nx ? K + SCREEN_EXTRA : nx;
   /* Split rows share the GEMM but not the column lists: each thread fills its own list for
    * every Y point, and the lists are merged after. That pays when the product dominates
-   * the list work: homer's Sinkhorn supports (K = 16, d = 20 on 5,103 x 8,018; d = 20 and
-   * 60 on 2,000 x 2,000) took 0.09-0.10 / 0.018 / 0.024 s on one thread and 0.11-0.15 /
-   * 0.025 / 0.027 s on two; ZoomOut's (K = 1, d = 100-400) 0.89 -> 0.57 s. Or when there
-   * are many rows (the lists' fill grows as the log of the rows, the scans linearly): the
-   * head pair's (15,000 x 14,118, d = 20) initial map took 0.46 s with two threads, 0.68 s
-   * with one. */
-  if (ds < MIN_DS_PER_LIST * capc && nx < MIN_ROWS_SPLIT) n = 1;
+   * the list work: ZoomOut's (K = 1, d = 100-400) 0.89 -> 0.57 s; or when there are many
+   * rows (the lists' fill grows as the log of the rows, the scans linearly): the head
+   * pair's (15,000 x 14,118, d = 20) initial map, 0.68 -> 0.46 s. Otherwise (list work
+   * dominates) the two directions are split instead: one thread fills the rows' lists,
+   * the other the columns', each running the whole (cheap) product, nothing to merge.
+   * Homer's Sinkhorn supports (K = 16, d = 20 on 5,103 x 8,018; d = 20 and 60 on 2,000 x
+   * 2,000) took 0.09-0.10 / 0.018 / 0.024 s on one thread, 0.11-0.15 / 0.025 / 0.027 s
+   * with split rows. The lists are the ones a single pass builds either way. */
+  int split_dirs = n >= 2 && ds < MIN_DS_PER_LIST * capc && nx < MIN_ROWS_SPLIT;
+  if (split_dirs) n = 2;
   brute_ws ws[KNN_MAX_THREADS];
   int32_t *xrow = scan_order(nx); /* the rows in scan order too, for the columns' lists */
-  int rc = both_ws_alloc(ws, n, ix, nx, cap, capc);
+  int rc = both_ws_alloc(ws, n, ix, nx, cap, capc, split_dirs);
   if (!xrow) rc = -1;
   if (!rc && screen_all(ix, X, xrow, nx, ws, n)) rc = 1;
   if (rc) {
@@ -1068,14 +1073,15 @@ static int query_both_brute(const sm_knn *ix, const double *X, int32_t nx, int K
   double delta = screen_delta(ds + 2, smax, ix->sy + (ix->L ? xmax2 : 0));
   both_job jobs[KNN_MAX_THREADS];
   for (int t = 0; t < n; t++) {
-    jobs[t] = (both_job){ix, X, xrow, &ws[t], &ws[0], nx, 0, 0, 0, 0, K, cap, capc, 0, delta,
+    jobs[t] = (both_job){ix, X, xrow, &ws[t], &ws[0], nx, 0, nx, 0, 0, K, cap, capc, 0, delta,
                          idx, idx_yx, dist2, dist_yx};
-    part_rows(nx, t, n, &jobs[t].i0, &jobs[t].i1);
+    if (split_dirs && t == 0) jobs[t].idx = NULL; /* ws[0]: the columns' lists only */
+    if (!split_dirs) part_rows(nx, t, n, &jobs[t].i0, &jobs[t].i1);
     jobs[t].j0 = (int32_t)((int64_t)ix->ny * t / n);
     jobs[t].j1 = (int32_t)((int64_t)ix->ny * (t + 1) / n);
   }
   run_jobs(both_job_run, jobs, sizeof *jobs, n);
-  for (int t = 1; t < n; t++)
+  for (int t = 1; t < n && !split_dirs; t++)
     merge_lists(&ws[0].cols, &ws[t].cols, ix->ny, capc, ws[0].vec, ws[0].iv);
   for (int t = 0; t < n; t++) jobs[t].phase = 1;
   run_jobs(both_job_run, jobs, sizeof *jobs, n);

@@ -297,8 +297,9 @@ static void test_knn_factored(void) {
 
 /* Query rows split over threads (whole blocks of 256 rows; >= 2^20 pairs): the same
  * exact answers, ties included (the merged column lists must keep the lowest row). A
- * two-way query splits only from 8 product dimensions per column-list entry (K + 4): d =
- * 100 and the factored dr = 48 / 64 below take that path, d = 20 the one-thread one. */
+ * two-way query splits its rows only from 8 product dimensions per column-list entry (K +
+ * 4): d = 100 and the factored dr = 48 / 64 below take that path; d = 20 splits the two
+ * directions instead (one thread the rows' lists, one the columns'). */
 static void test_knn_threads(void) {
   uint64_t s = 31337;
   for (int th = 2; th <= 3; th++) {
