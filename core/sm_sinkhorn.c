@@ -48,6 +48,7 @@
 #include <string.h>
 
 #include "sm_eigs.h" /* sm_now */
+#include "sm_par.h"
 
 #define SK_DEFAULT_K 16
 #define SK_DEFAULT_EPS_START 0.3
@@ -67,6 +68,7 @@
 #define SK_RETRUNC_MAX_PER_POINT 256
 #define SK_RETRUNC_ROUNDS 8
 #define SK_BIJ_MIN_SCORE 1e-6
+#define SK_TEAM_MIN_ENTRIES 32768
 
 void sm_sinkhorn_opts_default(sm_sinkhorn_opts *o) {
   memset(o, 0, sizeof *o);
@@ -287,13 +289,14 @@ typedef struct sk_support {
   int64_t *colptr; /* CSC transpose, rows sorted within a column */
   int32_t *row;
   double *ccost;   /* C_ij in CSC order */
+  int64_t *cpos;   /* CSC position of each CSR entry */
   int32_t maxlen;  /* longest row or column */
   double c0;       /* mean cost over the K-NN entries */
 } sk_support;
 
 static void support_free(sk_support *s) {
   free(s->rowptr), free(s->col), free(s->cost);
-  free(s->colptr), free(s->row), free(s->ccost);
+  free(s->colptr), free(s->row), free(s->ccost), free(s->cpos);
   memset(s, 0, sizeof *s);
 }
 
@@ -370,6 +373,7 @@ static int fill_support(sk_support *s, const int64_t *key, const double *F, cons
   for (int32_t i = 0; i < s->nx; i++)
     for (int64_t p = s->rowptr[i]; p < s->rowptr[i + 1]; p++) {
       int64_t q = fill[s->col[p]]++;
+      s->cpos[p] = q;
       s->row[q] = i;
       s->ccost[q] = s->cost[p];
     }
@@ -389,7 +393,9 @@ static int build_support(const sk_pairs *pr, const double *F, int32_t nx, const 
   size_t nz = (size_t)(s->nnz ? s->nnz : 1);
   s->col = malloc(sizeof(int32_t) * nz), s->cost = malloc(sizeof(double) * nz);
   s->row = malloc(sizeof(int32_t) * nz), s->ccost = malloc(sizeof(double) * nz);
-  if (!s->col || !s->cost || !s->row || !s->ccost || fill_support(s, key, F, G, d)) goto oom;
+  s->cpos = malloc(sizeof(int64_t) * nz);
+  if (!s->col || !s->cost || !s->row || !s->ccost || !s->cpos || fill_support(s, key, F, G, d))
+    goto oom;
   free(key);
   return 0;
 oom:
@@ -438,6 +444,9 @@ typedef struct sk_solver {
   double *f, *g, *z;           /* absorbed duals; z: scratch of the longest row/column */
   double *K;                   /* exp((f_i + g_j - C_ij)/eps) in CSR order */
   double *u, *v, *un, *cs;     /* scalings (nx, ny), next u, column sums (ny) */
+  /* Threaded sweeps (team != NULL): K in CSC order too, and each row's residual. */
+  sm_team *team;
+  double *Kc, *rres;
   double keps;                 /* eps of K, u, v; 0: K not computed */
   double c0, rho;              /* absolute */
   const sm_sinkhorn_opts *o;
@@ -449,13 +458,19 @@ static void solver_free(sk_solver *sv) {
   free(sv->a), free(sv->b), free(sv->loga), free(sv->logb);
   free(sv->f), free(sv->g), free(sv->z), free(sv->K);
   free(sv->u), free(sv->v), free(sv->un), free(sv->cs);
+  free(sv->Kc), free(sv->rres);
+  sm_team_free(sv->team);
 }
 
 /* Scaling arrays sized for the current support (again after re-truncation). */
 static int solver_alloc(sk_solver *sv) {
-  free(sv->z), free(sv->K);
+  free(sv->z), free(sv->K), free(sv->Kc);
+  size_t nz = (size_t)(sv->S.nnz > 0 ? sv->S.nnz : 1);
   sv->z = malloc(sizeof(double) * (size_t)(sv->S.maxlen > 0 ? sv->S.maxlen : 1));
-  sv->K = malloc(sizeof(double) * (size_t)(sv->S.nnz > 0 ? sv->S.nnz : 1));
+  sv->K = malloc(sizeof(double) * nz);
+  sv->Kc = sv->team ? malloc(sizeof(double) * nz) : NULL;
+  if (sv->team && !sv->rres) sv->rres = malloc(sizeof(double) * (size_t)sv->nx);
+  if (sv->team && (!sv->Kc || !sv->rres)) return SM_ENOMEM;
   if (!sv->u) sv->u = malloc(sizeof(double) * (size_t)sv->nx);
   if (!sv->un) sv->un = malloc(sizeof(double) * (size_t)sv->nx);
   if (!sv->v) sv->v = malloc(sizeof(double) * (size_t)sv->ny);
@@ -478,21 +493,53 @@ static int fold_scalings(sk_solver *sv) {
   return isfinite(sum) ? 0 : SM_ENUMERIC;
 }
 
-/* Absorption: folds the scalings into the duals and recomputes the kernel at eps (the
- * only exp() per entry). Returns 1 if every K_ij is finite. */
-static int absorb(sk_solver *sv, double eps) {
-  if (fold_scalings(sv)) return 0;
+/* ---- threaded steps: rows (columns) in parts, one part per team thread. Every value is
+ * computed as on one thread (per row or column, in the same order), so the iterates do
+ * not depend on the thread count. */
+
+typedef struct sk_step {
+  sk_solver *sv;
+  double lam, inv_eps;
+  int np;
+  int ok[SM_PAR_MAX_THREADS], out[SM_PAR_MAX_THREADS];
+} sk_step;
+
+static void part_range(int32_t n, int p, int np, int32_t *a, int32_t *b) {
+  *a = (int32_t)((int64_t)n * p / np);
+  *b = (int32_t)((int64_t)n * (p + 1) / np);
+}
+
+/* Kernel entries of rows i0 .. i1 - 1 (and their CSC copies when threaded); 1 if finite. */
+static int absorb_rows(sk_solver *sv, int32_t i0, int32_t i1, double inv_eps) {
   const sk_support *S = &sv->S;
-  double inv_eps = 1.0 / eps;
   int ok = 1;
-  for (int32_t i = 0; i < sv->nx; i++) {
+  for (int32_t i = i0; i < i1; i++) {
     double fi = sv->f[i];
     for (int64_t q = S->rowptr[i]; q < S->rowptr[i + 1]; q++) {
       double k = exp((fi + sv->g[S->col[q]] - S->cost[q]) * inv_eps);
       sv->K[q] = k;
+      if (sv->Kc) sv->Kc[S->cpos[q]] = k;
       ok &= k <= DBL_MAX;
     }
   }
+  return ok;
+}
+
+static void absorb_job(void *ctx, int p) {
+  sk_step *c = ctx;
+  int32_t i0, i1;
+  part_range(c->sv->nx, p, c->np, &i0, &i1);
+  c->ok[p] = absorb_rows(c->sv, i0, i1, c->inv_eps);
+}
+
+/* Absorption: folds the scalings into the duals and recomputes the kernel at eps (the
+ * only exp() per entry). Returns 1 if every K_ij is finite. */
+static int absorb(sk_solver *sv, double eps) {
+  if (fold_scalings(sv)) return 0;
+  sk_step c = {.sv = sv, .inv_eps = 1.0 / eps, .np = sm_team_threads(sv->team)};
+  sm_team_for(sv->team, c.np, absorb_job, &c);
+  int ok = 1;
+  for (int p = 0; p < c.np; p++) ok &= c.ok[p];
   sv->keps = eps;
   return ok;
 }
@@ -505,6 +552,38 @@ static inline double scale_of(double s, double m, double logm, double fi, double
   return exp(lam * (logm - log(s)) - (1.0 - lam) * fi * inv_eps);
 }
 
+/* New scaling of row i from its kernel sum s = (K v)_i; *r gets the row's residual of the
+ * incoming u, v (as the log domain computes it). */
+static inline double row_scaling(const sk_solver *sv, int32_t i, double s, double lam,
+                                 double inv_eps, double *r) {
+  double ri = sv->u[i] * s;
+  if (lam == 1.0) {
+    *r = fabs(ri - sv->a[i]);
+    return sv->a[i] / s;
+  }
+  const double inv_rho = sv->rho > 0 ? 1.0 / sv->rho : 0.0;
+  *r = fabs(ri - sv->a[i] * exp(-(sv->f[i] + sv->keps * log(sv->u[i])) * inv_rho));
+  return scale_of(s, sv->a[i], sv->loga[i], sv->f[i], inv_eps, lam);
+}
+
+/* Column j's new scaling from its kernel sum cs = (K^T u)_j; flags as in scaling_sweep. */
+static inline double col_scaling(const sk_solver *sv, int32_t j, double cs, double lam,
+                                 double inv_eps, int *ok, int *o) {
+  double vj = scale_of(cs, sv->b[j], sv->logb[j], sv->g[j], inv_eps, lam);
+  *ok &= vj > 0 && vj <= DBL_MAX;
+  *o |= vj > exp(SK_ABSORB) || vj < exp(-SK_ABSORB);
+  return vj;
+}
+
+/* Finishes a sweep whose new scalings are in un (rows) and cs (non-empty columns). */
+static void take_scalings(sk_solver *sv) {
+  const sk_support *S = &sv->S;
+  for (int32_t j = 0; j < sv->ny; j++)
+    if (S->colptr[j] != S->colptr[j + 1]) sv->v[j] = sv->cs[j];
+  double *t = sv->u;
+  sv->u = sv->un, sv->un = t;
+}
+
 /* One iteration of plain scaling, rows then columns, in a single pass over K: the row
  * sums (K v)_i give u_i, whose contributions K_ij u_i are scattered into the column sums
  * at once. Returns 1 and sets *res (the row residual of the incoming u, v, as the log
@@ -513,9 +592,7 @@ static inline double scale_of(double s, double m, double logm, double fi, double
 static int scaling_sweep(sk_solver *sv, double lam, double *res, int *out) {
   const sk_support *S = &sv->S;
   const double *K = sv->K, *v = sv->v;
-  const double eps = sv->keps, inv_eps = 1.0 / eps;
-  const double hi = exp(SK_ABSORB), lo = exp(-SK_ABSORB);
-  const double inv_rho = sv->rho > 0 ? 1.0 / sv->rho : 0.0;
+  const double hi = exp(SK_ABSORB), lo = exp(-SK_ABSORB), inv_eps = 1.0 / sv->keps;
   double *un = sv->un, *cs = sv->cs, r = 0.0;
   int ok = 1, o = 0;
   memset(cs, 0, sizeof(double) * (size_t)sv->ny);
@@ -525,34 +602,81 @@ static int scaling_sweep(sk_solver *sv, double lam, double *res, int *out) {
       un[i] = sv->u[i];
       continue;
     }
-    double s = 0.0;
+    double s = 0.0, ri;
     for (int64_t q = p0; q < p1; q++) s += K[q] * v[S->col[q]];
-    double ri = sv->u[i] * s, ui;
-    if (lam == 1.0) {
-      r += fabs(ri - sv->a[i]);
-      ui = sv->a[i] / s;
-    } else {
-      r += fabs(ri - sv->a[i] * exp(-(sv->f[i] + eps * log(sv->u[i])) * inv_rho));
-      ui = scale_of(s, sv->a[i], sv->loga[i], sv->f[i], inv_eps, lam);
-    }
+    double ui = row_scaling(sv, i, s, lam, inv_eps, &ri);
+    r += ri;
     ok &= ui > 0 && ui <= DBL_MAX;
     o |= ui > hi || ui < lo;
     un[i] = ui;
     for (int64_t q = p0; q < p1; q++) cs[S->col[q]] += K[q] * ui;
   }
   if (!ok) return 0;
-  for (int32_t j = 0; j < sv->ny; j++) {
-    if (S->colptr[j] == S->colptr[j + 1]) continue;
-    double vj = scale_of(cs[j], sv->b[j], sv->logb[j], sv->g[j], inv_eps, lam);
-    ok &= vj > 0 && vj <= DBL_MAX;
-    o |= vj > hi || vj < lo;
-    cs[j] = vj;
-  }
-  if (!ok) return 0;
   for (int32_t j = 0; j < sv->ny; j++)
-    if (S->colptr[j] != S->colptr[j + 1]) sv->v[j] = cs[j];
-  double *t = sv->u;
-  sv->u = un, sv->un = t;
+    if (S->colptr[j] != S->colptr[j + 1]) cs[j] = col_scaling(sv, j, cs[j], lam, inv_eps, &ok, &o);
+  if (!ok) return 0;
+  take_scalings(sv);
+  *res = r, *out = o;
+  return 1;
+}
+
+/* The same sweep in two threaded halves: the rows' new scalings (and residuals, summed
+ * in row order afterwards), then each column's sum gathered from the CSC copy of K, its
+ * rows in ascending order: the products and additions of the scattered sum, in the same
+ * order, so the same bits. */
+static void sweep_rows_job(void *ctx, int p) {
+  sk_step *c = ctx;
+  sk_solver *sv = c->sv;
+  const sk_support *S = &sv->S;
+  const double hi = exp(SK_ABSORB), lo = exp(-SK_ABSORB);
+  int32_t i0, i1;
+  int ok = 1, o = 0;
+  part_range(sv->nx, p, c->np, &i0, &i1);
+  for (int32_t i = i0; i < i1; i++) {
+    int64_t p0 = S->rowptr[i], p1 = S->rowptr[i + 1];
+    sv->rres[i] = 0.0;
+    if (p0 == p1) {
+      sv->un[i] = sv->u[i];
+      continue;
+    }
+    double s = 0.0;
+    for (int64_t q = p0; q < p1; q++) s += sv->K[q] * sv->v[S->col[q]];
+    double ui = row_scaling(sv, i, s, c->lam, c->inv_eps, &sv->rres[i]);
+    ok &= ui > 0 && ui <= DBL_MAX;
+    o |= ui > hi || ui < lo;
+    sv->un[i] = ui;
+  }
+  c->ok[p] = ok, c->out[p] = o;
+}
+
+static void sweep_cols_job(void *ctx, int p) {
+  sk_step *c = ctx;
+  sk_solver *sv = c->sv;
+  const sk_support *S = &sv->S;
+  int32_t j0, j1;
+  int ok = 1, o = 0;
+  part_range(sv->ny, p, c->np, &j0, &j1);
+  for (int32_t j = j0; j < j1; j++) {
+    if (S->colptr[j] == S->colptr[j + 1]) continue;
+    double cs = 0.0;
+    for (int64_t q = S->colptr[j]; q < S->colptr[j + 1]; q++) cs += sv->Kc[q] * sv->un[S->row[q]];
+    sv->cs[j] = col_scaling(sv, j, cs, c->lam, c->inv_eps, &ok, &o);
+  }
+  c->ok[p] = ok, c->out[p] = o;
+}
+
+static int scaling_sweep_team(sk_solver *sv, double lam, double *res, int *out) {
+  sk_step c = {.sv = sv, .lam = lam, .inv_eps = 1.0 / sv->keps, .np = sm_team_threads(sv->team)};
+  int ok = 1, o = 0;
+  sm_team_for(sv->team, c.np, sweep_rows_job, &c);
+  for (int p = 0; p < c.np; p++) ok &= c.ok[p], o |= c.out[p];
+  if (!ok) return 0;
+  sm_team_for(sv->team, c.np, sweep_cols_job, &c);
+  for (int p = 0; p < c.np; p++) ok &= c.ok[p], o |= c.out[p];
+  if (!ok) return 0;
+  double r = 0.0;
+  for (int32_t i = 0; i < sv->nx; i++) r += sv->rres[i];
+  take_scalings(sv);
   *res = r, *out = o;
   return 1;
 }
@@ -590,7 +714,9 @@ static int run_level(sk_solver *sv, double eps, int maxit, double tol, sm_error 
     }
     double r = NAN;
     int out = 0;
-    if (scaling && !stale && scaling_sweep(sv, lam, &r, &out)) {
+    int swept = scaling && !stale &&
+                (sv->team ? scaling_sweep_team(sv, lam, &r, &out) : scaling_sweep(sv, lam, &r, &out));
+    if (swept) {
       if (out) { /* bounded scalings keep u K v clear of overflow and underflow */
         stale = !absorb(sv, eps);
         st->absorptions++;
@@ -890,6 +1016,10 @@ int sm_sinkhorn(const double *F, int32_t nx, const double *G, int32_t ny, int32_
   sv.nx = nx, sv.ny = ny, sv.o = &o, sv.st = st;
   rc = make_masses(a, nx, "a", &sv.a, &sv.loga, err);
   if (!rc) rc = make_masses(b, ny, "b", &sv.b, &sv.logb, err);
+  /* Threaded sweeps from SK_TEAM_MIN_ENTRIES support entries (about (nx + ny) k): a sweep
+   * then takes a few hundred microseconds, a wake-up of the team a few. */
+  if (!rc && o.threads >= 2 && ((int64_t)nx + ny) * o.k >= SK_TEAM_MIN_ENTRIES)
+    sv.team = sm_team_new(o.threads);
   if (!rc) rc = build_initial(&sv, F, G, d, err);
   double t1 = sm_now();
   if (!rc) rc = anneal(&sv, err);

@@ -1,6 +1,6 @@
 /* test_sinkhorn: sparse log-domain Sinkhorn against a dense reference, tiny eps, recovery
- * of a permutation, feasibility of a clustered configuration, re-truncation, bad
- * arguments, cancellation. */
+ * of a permutation, feasibility of a clustered configuration, re-truncation, threaded
+ * sweeps, bad arguments, cancellation. */
 #include <math.h>
 #include <stdint.h>
 #include <stdio.h>
@@ -345,6 +345,41 @@ static void test_absorption_vs_log_domain(void) {
   free(F), free(G), free(a), free(b);
 }
 
+/* Threaded sweeps (from 32,768 support entries: (nx + ny) k) compute every value as one
+ * thread does: the same plan, duals and iteration counts bit for bit, whatever the
+ * thread count; balanced and unbalanced, with absorptions and a re-truncation. */
+static void test_threads_same_plan(void) {
+  enum { NX = 3000, NY = 2600, D = 4, NC = 3 };
+  double *F = points(NX, D, -1, 1), *G = points(NY, D, -1, 1), *a = masses(NX), *b = masses(NY);
+  struct { double rho, eps_end, decay, theta; } cs[NC] = {
+      {0, 1e-3, 0.5, 0}, {0.3, 1e-3, 0.5, 0}, {0, 1e-5, 0.05, 20}};
+  for (int c = 0; c < NC; c++) {
+    sm_plan *p[3] = {NULL, NULL, NULL};
+    sm_sinkhorn_stats st[3];
+    for (int t = 0; t < 3; t++) {
+      sm_sinkhorn_opts o;
+      sm_sinkhorn_opts_default(&o);
+      o.k = 8, o.rho = cs[c].rho, o.eps_end = cs[c].eps_end, o.decay = cs[c].decay;
+      o.theta = cs[c].theta, o.max_iter = 60, o.tol = 1e-12, o.threads = t + 1;
+      sm_error e;
+      REQUIRE(sm_sinkhorn(F, NX, G, NY, D, a, b, &o, &p[t], &st[t], &e) == 0);
+    }
+    for (int t = 1; t < 3; t++) {
+      int same = p[t]->nnz == p[0]->nnz && st[t].iterations == st[0].iterations &&
+                 st[t].absorptions == st[0].absorptions &&
+                 !memcmp(p[t]->val, p[0]->val, sizeof(double) * (size_t)p[0]->nnz) &&
+                 !memcmp(p[t]->f, p[0]->f, sizeof(double) * NX) &&
+                 !memcmp(p[t]->g, p[0]->g, sizeof(double) * NY);
+      CHECK_MSG(same, "case %d, %d threads: plan differs from one thread's", c, t + 1);
+    }
+    CHECK_MSG(cs[c].decay > 0.1 || st[0].absorptions > 0, "case %d: no absorption", c);
+    fprintf(stderr, "threads, case %d: nnz %lld, %d iterations, %d absorptions\n", c,
+            (long long)st[0].nnz, st[0].iterations, st[0].absorptions);
+    for (int t = 0; t < 3; t++) sm_plan_destroy(p[t]);
+  }
+  free(F), free(G), free(a), free(b);
+}
+
 static int expect_einval(const char *what, int rc, const sm_error *e, const sm_plan *p) {
   CHECK_MSG(rc == SM_EINVAL && e->code == SM_EINVAL && e->msg[0] && !p, "%s: rc=%d msg='%s'",
             what, rc, e->msg);
@@ -412,6 +447,7 @@ int main(void) {
   test_feasibility();
   test_retruncation();
   test_absorption_vs_log_domain();
+  test_threads_same_plan();
   test_bad_args();
   test_cancel();
   return sm_test_finish();
