@@ -337,7 +337,16 @@ static int soft_fmap(const sm_basis *bx, const sm_basis *by, const sm_plan *plan
                      const soft_rows *rows, int k, double *C, sm_error *err) {
   int32_t nx = bx->n, ny = by->n;
   double *PY = calloc((size_t)nx * k, sizeof *PY);
-  if (!PY) return sm_error_set(err, SM_ENOMEM, "soft map: out of memory");
+  /* Psi's rows at the plan's columns, k wide: the sums below read them contiguously (the
+   * basis is column-major; reading it in place touched a cache line per entry). */
+  double *Yr = malloc((size_t)plan->ny * k * sizeof *Yr), *acc = malloc((size_t)k * sizeof *acc);
+  if (!PY || !Yr || !acc) {
+    free(PY), free(Yr), free(acc);
+    return sm_error_set(err, SM_ENOMEM, "soft map: out of memory");
+  }
+  for (int j = 0; j < k; j++)
+    for (int32_t c = 0; c < plan->ny; c++)
+      Yr[(size_t)c * k + j] = by->phi[(size_t)j * ny + (rows->Sy ? rows->Sy[c] : c)];
   for (int32_t i = 0; i < plan->nx; i++) {
     double rs = 0;
     for (int64_t p = plan->rowptr[i]; p < plan->rowptr[i + 1]; p++) rs += plan->val[p];
@@ -345,15 +354,17 @@ static int soft_fmap(const sm_basis *bx, const sm_basis *by, const sm_plan *plan
     int32_t v = rows->Sx ? rows->Sx[i] : i;
     /* The mass of the weighting M_X is folded in here: row i carries m_i / rs. */
     double w = (rows->Sx ? rows->wx[i] : bx->mass[i]) / rs;
+    memset(acc, 0, (size_t)k * sizeof *acc);
     for (int64_t p = plan->rowptr[i]; p < plan->rowptr[i + 1]; p++) {
       double c = w * plan->val[p];
-      const double *psi = by->phi + (rows->Sy ? rows->Sy[plan->col[p]] : plan->col[p]);
-      for (int j = 0; j < k; j++) PY[(size_t)j * nx + v] += c * psi[(size_t)j * ny];
+      const double *psi = Yr + (size_t)plan->col[p] * k;
+      for (int j = 0; j < k; j++) acc[j] += c * psi[j];
     }
+    for (int j = 0; j < k; j++) PY[(size_t)j * nx + v] += acc[j];
   }
   cblas_dgemm(CblasColMajor, CblasTrans, CblasNoTrans, k, k, nx, 1.0, bx->phi, nx, PY, nx, 0.0,
               C, k);
-  free(PY);
+  free(PY), free(Yr), free(acc);
   if (bx->gram_L &&
       LAPACKE_dpotrs(LAPACK_COL_MAJOR, 'L', k, k, bx->gram_L, bx->k, C, k) != 0)
     return sm_error_set(err, SM_ENUMERIC, "soft map: Gram solve failed at k = %d", k);
