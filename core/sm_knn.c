@@ -71,6 +71,8 @@
 #include <stdlib.h>
 #include <string.h>
 
+#include "sm_par.h"
+
 /* Query rows x Y rows per GEMM block (G = 1 MiB of floats): the best of 128/256 x
  * 512/1024/2048 on 2000 x 5000 points, d = 20 and 60 (measured with doubles). */
 enum { BLK_X = 256, BLK_Y = 1024 };
@@ -179,26 +181,88 @@ static int32_t *scan_order(int32_t n) {
   return pos;
 }
 
-/* Factored screening rows: Ya[p, :dr] = -2 s (u_j - ubar) for the point j at scan position
- * p, and the reduced part of the rounding bound, max_j |s (u_j - ubar)|^2. */
-static double factored_rows(sm_knn *ix, const double *U, const double *ubar) {
-  int dr = ix->ds;
-  double m = 0;
-  for (int32_t p = 0; p < ix->ny; p++) {
-    int32_t j = ix->ypos[p];
-    double s = 0;
-    float *ya = ix->Ya + (size_t)p * (dr + 1);
-    for (int t = 0; t < dr; t++) {
-      double c = ix->scale * (U[(size_t)j * dr + t] - ubar[t]);
-      ya[t] = (float)(-2 * c);
-      s += c * c;
-    }
-    if (s > m) m = s;
-  }
-  return m;
+/* ---- brute-force index: passes over Y in row parts (sm_par_for) ------------------------- */
+
+/* Parts of a build pass over Y: one per query thread once Y is large enough to pay for a
+ * thread start. Every value is per row, and the parts' maxima combine exactly, so the
+ * index does not depend on the thread count. */
+enum { BUILD_PAR_MIN = 1 << 18 /* ny x d */ };
+
+typedef struct build_pass {
+  sm_knn *ix;
+  const double *U, *ubar; /* factored: the coordinates and their mean */
+  int np, fill;           /* parts; 0: radius pass, 1: screening rows */
+  double ym[SM_PAR_MAX_THREADS], um[SM_PAR_MAX_THREADS]; /* the parts' maxima */
+} build_pass;
+
+static int build_parts(const sm_knn *ix) {
+  int64_t work = (int64_t)ix->ny * ix->d;
+  int t = ix->threads < SM_PAR_MAX_THREADS ? ix->threads : SM_PAR_MAX_THREADS;
+  return work < BUILD_PAR_MIN ? 1 : t;
 }
 
-/* U != NULL: factored index (Y = U L^T already in ix->Y, L in ix->L, ds = dr columns). */
+/* Largest |y_j - center|^2 over points j0 .. j1 - 1 (NaN if some y_j is not finite). */
+static double radius_part(const sm_knn *ix, int32_t j0, int32_t j1) {
+  double r2 = 0;
+  for (int32_t j = j0; j < j1; j++) {
+    double s = 0;
+    for (int t = 0; t < ix->d; t++) {
+      double c = ix->Y[(size_t)j * ix->d + t] - ix->center[t];
+      s += c * c;
+    }
+    if (!(s <= r2)) r2 = isnan(r2) ? r2 : s; /* keeps the first NaN */
+  }
+  return r2;
+}
+
+/* Screening rows of scan positions p0 .. p1 - 1: Ya[p, :ds] = -2 s (y_j - center) (plain)
+ * or -2 s (u_j - ubar) (factored), Ya[p, ds] = |s (y_j - center)|^2. *ym gets the largest
+ * of that last column, *um (factored) the largest |s (u_j - ubar)|^2. */
+static void rows_part(const sm_knn *ix, const double *U, const double *ubar, int32_t p0,
+                      int32_t p1, double *ym, double *um) {
+  int d = ix->d, ds = ix->ds;
+  *ym = *um = 0;
+  for (int32_t p = p0; p < p1; p++) {
+    int32_t j = ix->ypos[p];
+    double s = 0;
+    float *ya = ix->Ya + (size_t)p * (ds + 1);
+    for (int t = 0; t < d; t++) {
+      double c = ix->scale * (ix->Y[(size_t)j * d + t] - ix->center[t]);
+      if (!U) ya[t] = (float)(-2 * c);
+      s += c * c;
+    }
+    ya[ds] = (float)s;
+    if (s > *ym) *ym = s;
+    if (!U) continue;
+    double su = 0;
+    for (int t = 0; t < ds; t++) {
+      double c = ix->scale * (U[(size_t)j * ds + t] - ubar[t]);
+      ya[t] = (float)(-2 * c);
+      su += c * c;
+    }
+    if (su > *um) *um = su;
+  }
+}
+
+static void build_job(void *ctx, int p) {
+  build_pass *b = ctx;
+  int32_t n = b->ix->ny, j0 = (int32_t)((int64_t)n * p / b->np);
+  int32_t j1 = (int32_t)((int64_t)n * (p + 1) / b->np);
+  if (b->fill) rows_part(b->ix, b->U, b->ubar, j0, j1, &b->ym[p], &b->um[p]);
+  else b->ym[p] = radius_part(b->ix, j0, j1);
+}
+
+/* The largest of the parts' values (NaN if one is). */
+static double parts_max(const double *m, int np) {
+  double r = 0;
+  for (int p = 0; p < np; p++)
+    if (!(m[p] <= r)) r = isnan(r) ? r : m[p];
+  return r;
+}
+
+/* U != NULL: factored index (Y = U L^T already in ix->Y, L in ix->L, ds = dr columns).
+ * The finiteness of Y (plain) or of U and Y (factored) is checked here, by the passes
+ * that read them anyway: a full check only names the culprit once one failed. */
 static int build_brute(sm_knn *ix, const double *U, sm_error *err) {
   int32_t ny = ix->ny;
   int d = ix->d, ds = ix->ds;
@@ -210,39 +274,28 @@ static int build_brute(sm_knn *ix, const double *U, sm_error *err) {
     free(ubar);
     return sm_error_set(err, SM_ENOMEM, "knn: brute-force index of %d x %d", ny, d);
   }
+  int rc = 0;
   if (U) { /* center = L ubar, so that y_j - center = L (u_j - ubar) */
     row_mean(U, ny, ds, ubar);
+    for (int t = 0; t < ds && !rc; t++)
+      if (!isfinite(ubar[t])) rc = check_finite(U, (int64_t)ny * ds, "U", err);
     cblas_dgemv(CblasRowMajor, CblasNoTrans, d, ds, 1.0, ix->L, ds, ubar, 1, 0.0, ix->center, 1);
   } else {
     row_mean(ix->Y, ny, d, ix->center);
   }
-  double r2 = 0;
-  for (int32_t j = 0; j < ny; j++) {
-    double s = 0;
-    for (int t = 0; t < d; t++) {
-      double c = ix->Y[(size_t)j * d + t] - ix->center[t];
-      s += c * c;
-    }
-    if (s > r2) r2 = s;
+  build_pass b = {.ix = ix, .U = U, .ubar = ubar, .np = build_parts(ix)};
+  if (!rc) sm_par_for(b.np, b.np, build_job, &b);
+  double r2 = parts_max(b.ym, b.np);
+  if (!rc && !isfinite(r2)) rc = check_finite(ix->Y, (int64_t)ny * d, U ? "Y = U L^T" : "Y", err);
+  if (!rc) {
+    ix->scale = unit_scale(r2);
+    b.fill = 1;
+    sm_par_for(b.np, b.np, build_job, &b);
+    ix->ymax2 = parts_max(b.ym, b.np);
+    ix->sy = ix->ymax2 + (U ? parts_max(b.um, b.np) : 0);
   }
-  ix->scale = unit_scale(r2);
-  ix->ymax2 = 0;
-  for (int32_t p = 0; p < ny; p++) {
-    int32_t j = ix->ypos[p];
-    double s = 0;
-    float *ya = ix->Ya + (size_t)p * (ds + 1);
-    for (int t = 0; t < d; t++) {
-      double c = ix->scale * (ix->Y[(size_t)j * d + t] - ix->center[t]);
-      if (!U) ya[t] = (float)(-2 * c);
-      s += c * c;
-    }
-    ya[ds] = (float)s;
-    if (s > ix->ymax2) ix->ymax2 = s;
-  }
-  ix->sy = ix->ymax2;
-  if (U) ix->sy += factored_rows(ix, U, ubar);
   free(ubar);
-  return 0;
+  return rc;
 }
 
 static int build_flann(sm_knn *ix, const sm_knn_opts *o, sm_error *err) {
@@ -298,8 +351,6 @@ int sm_knn_build(const double *Y, int32_t ny, int d, const sm_knn_opts *o, sm_kn
     return sm_error_set(err, SM_EINVAL, "knn: bad point set (ny=%d, d=%d)", ny, d);
   if (o->strategy < SM_KNN_AUTO || o->strategy > SM_KNN_BRUTE)
     return sm_error_set(err, SM_EINVAL, "knn: unknown strategy %d", o->strategy);
-  int rc = check_finite(Y, (int64_t)ny * d, "Y", err);
-  if (rc) return rc;
   sm_knn *ix = knn_new(ny, d, d, NULL, o);
   if (!ix) return sm_error_set(err, SM_ENOMEM, "knn: copy of %d x %d points", ny, d);
   int cross = o->crossover_d > 0 ? o->crossover_d : SM_KNN_CROSSOVER_D;
@@ -307,7 +358,9 @@ int sm_knn_build(const double *Y, int32_t ny, int d, const sm_knn_opts *o, sm_kn
                  : d < cross                 ? SM_KNN_KDTREE
                                              : SM_KNN_BRUTE;
   memcpy(ix->Y, Y, (size_t)ny * d * sizeof(double));
-  rc = ix->strategy == SM_KNN_BRUTE ? build_brute(ix, NULL, err) : build_flann(ix, o, err);
+  int rc = ix->strategy == SM_KNN_BRUTE ? build_brute(ix, NULL, err)
+                                         : check_finite(Y, (int64_t)ny * d, "Y", err);
+  if (!rc && ix->strategy != SM_KNN_BRUTE) rc = build_flann(ix, o, err);
   if (rc) {
     sm_knn_destroy(ix);
     return rc;
@@ -322,8 +375,7 @@ int sm_knn_build_factored(const double *U, int32_t ny, int dr, const double *L, 
   if (!U || !L || ny < 1 || dr < 1 || d < 1)
     return sm_error_set(err, SM_EINVAL, "knn: bad factored point set (ny=%d, dr=%d, d=%d)", ny,
                         dr, d);
-  int rc = check_finite(U, (int64_t)ny * dr, "U", err);
-  if (!rc) rc = check_finite(L, (int64_t)d * dr, "L", err);
+  int rc = check_finite(L, (int64_t)d * dr, "L", err); /* U: in build_brute */
   if (rc) return rc;
   sm_knn *ix = knn_new(ny, d, dr, Y, o);
   if (ix) ix->strategy = SM_KNN_BRUTE;
@@ -336,8 +388,7 @@ int sm_knn_build_factored(const double *U, int32_t ny, int dr, const double *L, 
   if (!Y)
     cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasTrans, ny, d, dr, 1.0, U, dr, L, dr, 0.0,
                 ix->Y, d);
-  rc = check_finite(ix->Y, (int64_t)ny * d, "Y = U L^T", err);
-  if (!rc) rc = build_brute(ix, U, err);
+  rc = build_brute(ix, U, err);
   if (rc) {
     sm_knn_destroy(ix);
     return rc;

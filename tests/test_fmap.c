@@ -293,6 +293,43 @@ static void test_knn_factored(void) {
   CHECK(sm_knn_build_factored(U, 4, 1, L, 0, NULL, NULL, &ix, &err) == SM_EINVAL && !ix);
   U[2] = NAN;
   CHECK(sm_knn_build_factored(U, 4, 1, L, 2, NULL, NULL, &ix, &err) == SM_ENONFINITE && !ix);
+  U[2] = INFINITY;
+  CHECK(sm_knn_build_factored(U, 4, 1, L, 2, NULL, NULL, &ix, &err) == SM_ENONFINITE && !ix);
+  CHECK_MSG(strstr(err.msg, "U value 2"), "factored U: '%s'", err.msg);
+  U[2] = 2;
+  double Yc[8] = {0, 0, 1, 0, 2, NAN, 3, 0}; /* a caller's rows Y = U L^T, one not finite */
+  CHECK(sm_knn_build_factored(U, 4, 1, L, 2, Yc, NULL, &ix, &err) == SM_ENONFINITE && !ix);
+  CHECK_MSG(strstr(err.msg, "value 5"), "factored Y: '%s'", err.msg);
+}
+
+/* Non-finite points of a brute-force index are refused and named, one thread or several
+ * (its passes over Y run in parts from 2^18 values: the check rides on them). */
+static void test_knn_nonfinite(void) {
+  sm_knn_opts o;
+  sm_knn_opts_default(&o);
+  o.strategy = SM_KNN_BRUTE;
+  const double bad[3] = {NAN, INFINITY, -INFINITY};
+  for (int th = 1; th <= 2; th++)
+    for (int n = 5; n <= 5000; n += 4995) {
+      int d = 100;
+      double *Y = calloc((size_t)n * d, sizeof *Y);
+      for (int b = 0; b < 3; b++) {
+        o.query_threads = th;
+        size_t at = (size_t)(n - 1) * d + 7;
+        Y[at] = bad[b];
+        sm_knn *ix = NULL;
+        sm_error err;
+        CHECK(sm_knn_build(Y, n, d, &o, &ix, &err) == SM_ENONFINITE && !ix);
+        char want[64];
+        snprintf(want, sizeof want, "Y value %zu ", at);
+        CHECK_MSG(strstr(err.msg, want), "n=%d threads %d: '%s'", n, th, err.msg);
+        Y[at] = 1e300; /* finite: its square overflows, which is no error */
+        CHECK(sm_knn_build(Y, n, d, &o, &ix, &err) == 0);
+        sm_knn_destroy(ix);
+        Y[at] = 0;
+      }
+      free(Y);
+    }
 }
 
 /* Query rows split over threads (whole blocks of 256 rows; >= 2^20 pairs): the same
@@ -840,6 +877,7 @@ int main(void) {
   test_knn_factored();
   test_knn_threads();
   test_knn_errors();
+  test_knn_nonfinite();
   test_identity();
   test_p2p_formula();
   test_classic_equivalence();
