@@ -439,9 +439,15 @@ static int zalloc_pair(zctx *z, zpair *q, const sm_fmap_pair *in, sm_error *err)
   q->Cw = malloc((size_t)q->K * q->K * sizeof(double));
   if (!q->UX || !q->UY || !q->Cw)
     return sm_error_set(err, SM_ENOMEM, "zoomout: whitened coordinates (k=%d)", q->K);
-  whiten(q->x, q->K, NULL, z->nx, 1.0, q->UX, q->K);
-  whiten(q->y, q->K, NULL, z->ny, 1.0, q->UY, q->K);
   return 0;
+}
+
+/* Whitening job i (sm_par_for): pair i / 2's X (i even) or Y (i odd) coordinates. */
+static void zwhiten_job(void *ctx, int i) {
+  zctx *z = ctx;
+  zpair *q = &z->p[i / 2];
+  if (i % 2 == 0) whiten(q->x, q->K, NULL, z->nx, 1.0, q->UX, q->K);
+  else whiten(q->y, q->K, NULL, z->ny, 1.0, q->UY, q->K);
 }
 
 /* Chooses the X fit set and the Y candidates (farthest-point samples or everything). */
@@ -518,12 +524,12 @@ static int zfit_rows(const double *U, int K, const int32_t *rows, int32_t nfit,
   return 0;
 }
 
-/* Per pair: the weighted fit rows and their Gram factor (X's; Y's too when bijective),
- * the candidate rows of Y. */
-static int zfit_setup(zctx *z, zpair *q, sm_error *err) {
-  int K = q->K;
-  int rc = zfit_rows(q->UX, K, z->fit, z->nfit, z->sqw, &q->UF, &q->GF, err);
-  if (!rc && z->sqw_y) rc = zfit_rows(q->UY, K, z->cand, z->nfit_y, z->sqw_y, &q->UFy, &q->GFy, err);
+/* Per pair: the weighted fit rows and their Gram factor of X (side 0), and of Y when
+ * bijective with the candidate rows of Y (side 1). */
+static int zfit_setup(zctx *z, zpair *q, int side, sm_error *err) {
+  int K = q->K, rc = 0;
+  if (side == 0) return zfit_rows(q->UX, K, z->fit, z->nfit, z->sqw, &q->UF, &q->GF, err);
+  if (z->sqw_y) rc = zfit_rows(q->UY, K, z->cand, z->nfit_y, z->sqw_y, &q->UFy, &q->GFy, err);
   if (!rc && z->sqw_y && !(q->Dw = malloc((size_t)K * K * sizeof(double))))
     rc = sm_error_set(err, SM_ENOMEM, "zoomout: Y -> X map");
   if (rc || !z->cand) return rc;
@@ -534,13 +540,33 @@ static int zfit_setup(zctx *z, zpair *q, sm_error *err) {
   return 0;
 }
 
+/* Setup job i (sm_par_for): pair i / 2, side i % 2 (zfit_setup); each its own error. */
+typedef struct zsetup_jobs {
+  zctx *z;
+  int rc[2 * SM_FMAP_MAX_PAIRS];
+  sm_error err[2 * SM_FMAP_MAX_PAIRS];
+} zsetup_jobs;
+
+static void zfit_setup_job(void *ctx, int i) {
+  zsetup_jobs *j = ctx;
+  j->rc[i] = zfit_setup(j->z, &j->z->p[i / 2], i % 2, &j->err[i]);
+}
+
 static int zsetup(zctx *z, const sm_fmap_pair *pairs, const int32_t *T0, sm_error *err) {
   double t0 = sm_now();
   int rc = 0;
+  z->threads = z->o->threads > 1 ? z->o->threads : 1;
   for (int p = 0; p < z->np && !rc; p++) rc = zalloc_pair(z, &z->p[p], &pairs[p], err);
+  if (!rc) sm_par_for(2 * z->np, z->threads, zwhiten_job, z);
   if (!rc) rc = zsample(z, err);
-  for (int p = 0; p < z->np && !rc; p++) rc = zfit_setup(z, &z->p[p], err);
   if (rc) return rc;
+  zsetup_jobs sj = {.z = z};
+  sm_par_for(2 * z->np, z->threads, zfit_setup_job, &sj);
+  for (int i = 0; i < 2 * z->np; i++)
+    if (sj.rc[i]) {
+      if (err) *err = sj.err[i];
+      return sj.rc[i];
+    }
   int Kmax = 0;
   z->Dmax = 0;
   for (int p = 0; p < z->np; p++) {
@@ -552,7 +578,6 @@ static int zsetup(zctx *z, const sm_fmap_pair *pairs, const int32_t *T0, sm_erro
   z->Tfit = malloc((size_t)z->nfit * sizeof(int32_t));
   z->EX = malloc((size_t)z->nx * z->Dmax * sizeof(double));
   z->EY = malloc((size_t)z->ny * z->Dmax * sizeof(double));
-  z->threads = z->o->threads > 1 ? z->o->threads : 1;
   z->nz = z->threads > 1 ? (z->sqw_y ? 2 : 1) * z->np : 1;
   int zok = 1;
   for (int i = 0; i < z->nz; i++) zok &= (z->Z[i] = malloc((size_t)zrows * Kmax * sizeof(double))) != NULL;
