@@ -684,17 +684,24 @@ static void zembed_features(zctx *z, int32_t nq, int full_q, int32_t nc, int ful
 typedef struct zembed_jobs {
   zctx *z;
   int full_q, full_c, D;
+  int yparts; /* jobs per pair on the candidates' side */
   int off[SM_FMAP_MAX_PAIRS], roff[SM_FMAP_MAX_PAIRS]; /* pair p's columns in EX/EY, LY */
 } zembed_jobs;
 
-/* Embedding job i (sm_par_for): pair i / 2's columns of the queries (i even) or of the
- * candidates (i odd); the pairs and the sides write disjoint columns. */
+/* Plain candidates (b_j = Cw u_j) are one GEMM, most of an embedding's work, and a single
+ * pair has no other to run beside it: their rows are cut in this many parts. */
+#define ZEMBED_YPARTS 2
+
+/* Embedding job i (sm_par_for): pair p = i / (1 + yparts)'s columns of the queries (first
+ * job of the pair) or of the candidates (the others: part r of their rows); the pairs, the
+ * sides and the parts write disjoint entries. */
 static void zembed_job(void *ctx, int i) {
   const zembed_jobs *j = ctx;
   zctx *z = j->z;
-  const zpair *q = &z->p[i / 2];
-  int D = j->D, off = j->off[i / 2];
-  if (i % 2 == 0) {
+  int pi = i / (1 + j->yparts), r = i % (1 + j->yparts) - 1;
+  const zpair *q = &z->p[pi];
+  int D = j->D, off = j->off[pi];
+  if (r < 0) {
     int32_t nq = j->full_q || !z->fit ? z->nx : z->nfit;
     for (int32_t r = 0; r < nq; r++) {
       int32_t v = j->full_q || !z->fit ? r : z->fit[r];
@@ -708,8 +715,13 @@ static void zembed_job(void *ctx, int i) {
   }
   int32_t nc = j->full_c || !z->cand ? z->ny : z->ncand;
   const double *UY = j->full_c || !z->cand ? q->UY : q->UYc;
-  if (z->have_s) zfactor(z, q, UY, nc, D, off, j->roff[i / 2]);
-  else apply_map(UY, q->K, nc, q->k, q->Cw, q->w, z->EY + off, D);
+  if (z->have_s) {
+    zfactor(z, q, UY, nc, D, off, j->roff[pi]);
+    return;
+  }
+  int32_t r0 = (int32_t)((int64_t)nc * r / j->yparts), r1 = (int32_t)((int64_t)nc * (r + 1) / j->yparts);
+  apply_map(UY + (size_t)r0 * q->K, q->K, r1 - r0, q->k, q->Cw, q->w,
+            z->EY + (size_t)r0 * D + off, D);
 }
 
 static void zembed(zctx *z, int full_q, int full_c, int D) {
@@ -721,7 +733,8 @@ static void zembed(zctx *z, int full_q, int full_c, int D) {
     roff += z->p[p].k;
   }
   if (z->have_s) memset(z->LY, 0, (size_t)D * (D / 2) * sizeof(double));
-  sm_par_for(2 * z->np, z->threads, zembed_job, &j);
+  j.yparts = z->have_s ? 1 : ZEMBED_YPARTS;
+  sm_par_for((1 + j.yparts) * z->np, z->threads, zembed_job, &j);
   int32_t nq = full_q || !z->fit ? z->nx : z->nfit;
   int32_t nc = full_c || !z->cand ? z->ny : z->ncand;
   zembed_features(z, nq, full_q, nc, full_c, D);
