@@ -58,6 +58,8 @@
 #include <sys/mman.h>
 #include <time.h>
 
+#include "sm_par.h"
+
 /* OpenMP's switch, reached through CHOLMOD: libcholmod links libgomp when it was built
  * with OpenMP, and a weak reference finds it there without making OpenMP a build
  * dependency of ours (NULL when CHOLMOD has no OpenMP: nothing to turn off). */
@@ -265,27 +267,24 @@ static int bks_alloc(bks *w, int n, int nev, int b, int mmax, int keep, int part
 
 typedef void (*part_fn)(bks *w, void *ctx, int p, int r0, int rn);
 
-typedef struct part_run {
-  bks *w;
-  part_fn fn;
-  void *ctx;
-  atomic_int next;
-} part_run;
-
 static void part_range(const bks *w, int p, int *r0, int *rn) {
   int64_t a = (int64_t)w->n * p / w->parts, e = (int64_t)w->n * (p + 1) / w->parts;
   *r0 = (int)a;
   *rn = (int)(e - a);
 }
 
-static void *part_worker(void *arg) {
-  part_run *r = arg;
-  for (int p; (p = atomic_fetch_add(&r->next, 1)) < r->w->parts;) {
-    int r0, rn;
-    part_range(r->w, p, &r0, &rn);
-    r->fn(r->w, r->ctx, p, r0, rn);
-  }
-  return NULL;
+/* Part p of a for_parts loop (sm_par_for job). */
+typedef struct part_call {
+  bks *w;
+  part_fn fn;
+  void *ctx;
+} part_call;
+
+static void part_job(void *vc, int p) {
+  part_call *c = vc;
+  int r0, rn;
+  part_range(c->w, p, &r0, &rn);
+  c->fn(c->w, c->ctx, p, r0, rn);
 }
 
 /* Up to want threads from *spare (NULL: none). */
@@ -300,13 +299,9 @@ static int borrow_threads(_Atomic int *spare, int want) {
 }
 
 static void for_parts(bks *w, part_fn fn, void *ctx) {
-  part_run r = {.w = w, .fn = fn, .ctx = ctx};
-  atomic_init(&r.next, 0);
-  pthread_t th[SM_EIGS_MAX_PARTS];
-  int extra = borrow_threads(w->spare, w->parts - 1), started = 0;
-  while (started < extra && !pthread_create(&th[started], NULL, part_worker, &r)) started++;
-  part_worker(&r);
-  for (int t = 0; t < started; t++) pthread_join(th[t], NULL);
+  part_call c = {w, fn, ctx};
+  int extra = borrow_threads(w->spare, w->parts - 1);
+  sm_par_for(w->parts, 1 + extra, part_job, &c);
   if (extra) atomic_fetch_add(w->spare, extra);
 }
 

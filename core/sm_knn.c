@@ -886,22 +886,26 @@ static void brute_rows(const sm_knn *ix, brute_ws *w, const float *Xc, const dou
 
 /* ---- threads ------------------------------------------------------------------------ */
 
-enum { KNN_MAX_THREADS = 8, PAR_MIN_WORK = 1 << 20 /* query rows x points */ };
+enum { KNN_MAX_THREADS = SM_PAR_MAX_THREADS, PAR_MIN_WORK = 1 << 20 /* query rows x points */ };
 /* Two-way queries split over threads only from this many product dimensions per column
  * list entry, or from this many query rows (query_both_brute). */
 enum { MIN_DS_PER_LIST = 8, MIN_ROWS_SPLIT = 10000 };
 
-/* Runs fn on jobs[0 .. n-1] (each `size` bytes): n - 1 new threads and the caller; a job
- * whose thread cannot start runs on the caller afterwards. */
+/* Runs fn on jobs[0 .. n-1] (each `size` bytes) on n threads (sm_par_for). */
+typedef struct job_array {
+  void *(*fn)(void *);
+  char *jobs;
+  size_t size;
+} job_array;
+
+static void job_at(void *ctx, int i) {
+  job_array *a = ctx;
+  a->fn(a->jobs + (size_t)i * a->size);
+}
+
 static void run_jobs(void *(*fn)(void *), void *jobs, size_t size, int n) {
-  pthread_t th[KNN_MAX_THREADS];
-  int started[KNN_MAX_THREADS] = {0};
-  for (int t = 1; t < n; t++) started[t] = !pthread_create(&th[t], NULL, fn, (char *)jobs + t * size);
-  fn(jobs);
-  for (int t = 1; t < n; t++) {
-    if (started[t]) pthread_join(th[t], NULL);
-    else fn((char *)jobs + t * size);
-  }
+  job_array a = {fn, jobs, size};
+  sm_par_for(n, n, job_at, &a);
 }
 
 /* Threads for nx query rows against ix: whole BLK_X blocks each, and only when the work
@@ -1182,23 +1186,23 @@ int sm_knn_query_both(const sm_knn *ix, const double *X, int32_t nx, int K, int3
     return sm_error_set(err, SM_EINVAL, "knn: K=%d outside [1, min(%d, %d)]", K, nx, ix->ny);
   int rc = check_finite(X, (int64_t)nx * ix->d, "query", err);
   if (rc) return rc;
-  double *own = malloc(((size_t)nx + ix->ny) * K * sizeof(double));
-  if (!own) return sm_error_set(err, SM_ENOMEM, "knn: %d + %d x %d distances", nx, ix->ny, K);
   rc = ix->strategy == SM_KNN_BRUTE
            ? query_both_brute(ix, X, nx, K, idx, dist2, idx_yx, dist_yx, err)
            : 1;
+  if (rc != 1) return rc;
+  /* kd-tree, or rows too far to screen: two plain queries (the kd-tree's want distances) */
+  double *own = malloc(((size_t)nx + ix->ny) * K * sizeof(double));
+  if (!own) return sm_error_set(err, SM_ENOMEM, "knn: %d + %d x %d distances", nx, ix->ny, K);
   if (!dist2) dist2 = own;
   if (!dist_yx) dist_yx = own + (size_t)nx * K;
-  if (rc == 1) { /* kd-tree, or rows too far to screen: two plain queries */
-    sm_knn_opts o;
-    sm_knn_opts_default(&o);
-    o.strategy = ix->strategy;
-    sm_knn *ixx = NULL;
-    rc = query_any(ix, X, nx, K, idx, dist2, err);
-    if (!rc) rc = sm_knn_build(X, nx, ix->d, &o, &ixx, err);
-    if (!rc) rc = query_any(ixx, ix->Y, ix->ny, K, idx_yx, dist_yx, err);
-    sm_knn_destroy(ixx);
-  }
+  sm_knn_opts o;
+  sm_knn_opts_default(&o);
+  o.strategy = ix->strategy;
+  sm_knn *ixx = NULL;
+  rc = query_any(ix, X, nx, K, idx, dist2, err);
+  if (!rc) rc = sm_knn_build(X, nx, ix->d, &o, &ixx, err);
+  if (!rc) rc = query_any(ixx, ix->Y, ix->ny, K, idx_yx, dist_yx, err);
+  sm_knn_destroy(ixx);
   free(own);
   return rc;
 }

@@ -43,7 +43,6 @@
 #include <cblas.h>
 #include <float.h>
 #include <math.h>
-#include <pthread.h>
 #include <stdlib.h>
 #include <string.h>
 
@@ -122,7 +121,7 @@ static inline void pairs_put(sk_pairs *p, int32_t i, int32_t j, uint8_t flag) {
 
 /* ---------------------------------------------------------------- nearest neighbours */
 
-/* One direction of the K-NN search, runnable on its own thread. */
+/* One direction of the K-NN search, job i of an sm_par_for over the two. */
 typedef struct sk_knn_job {
   const sm_knn *ix;
   const double *X;
@@ -134,10 +133,9 @@ typedef struct sk_knn_job {
   int rc;
 } sk_knn_job;
 
-static void *knn_job_run(void *arg) {
-  sk_knn_job *jb = arg;
+static void knn_job_run(void *jobs, int i) {
+  sk_knn_job *jb = (sk_knn_job *)jobs + i;
   jb->rc = sm_knn_query(jb->ix, jb->X, jb->n, jb->k, jb->idx, jb->dist, &jb->err);
-  return NULL;
 }
 
 /* K nearest g's of every f_i and K nearest f's of every g_j, by sm_knn (exact either
@@ -167,14 +165,10 @@ static int add_knn_pairs(const double *F, int32_t nx, const double *G, int32_t n
   if (both) rc = sm_knn_query_both(ig, F, nx, kx, ri, rd, ci, cd, err);
   if (!rc && !both) rc = sm_knn_build(F, nx, d, &ko, &jf, err);
   if (!rc && !both) {
-    sk_knn_job jr = {ig, F, nx, kx, ri, rd, {0}, 0}, jc = {jf, G, ny, ky, ci, cd, {0}, 0};
-    pthread_t th;
-    int par = o->threads >= 2 && sm_knn_strategy_of(ig) == SM_KNN_BRUTE &&
-              pthread_create(&th, NULL, knn_job_run, &jc) == 0;
-    knn_job_run(&jr);
-    if (par) pthread_join(th, NULL);
-    else knn_job_run(&jc);
-    sk_knn_job *bad = jr.rc ? &jr : jc.rc ? &jc : NULL;
+    sk_knn_job jobs[2] = {{ig, F, nx, kx, ri, rd, {0}, 0}, {jf, G, ny, ky, ci, cd, {0}, 0}};
+    int par = o->threads >= 2 && sm_knn_strategy_of(ig) == SM_KNN_BRUTE;
+    sm_par_for(2, par ? 2 : 1, knn_job_run, jobs);
+    sk_knn_job *bad = jobs[0].rc ? &jobs[0] : jobs[1].rc ? &jobs[1] : NULL;
     if (bad) {
       rc = bad->rc;
       if (err) *err = bad->err;
