@@ -28,13 +28,14 @@ if [ "$rc" -ne 0 ] && [ "$rc" -ne 77 ]; then exit "$rc"; fi
 
 # ThreadSanitizer on what runs threads: the daemon (its loop, pool and store), the client
 # library and the CLI, through the tests that drive them (the daemon these tests start is
-# the TSan build too), and the nearest-neighbour queries split over threads (test_fmap).
+# the TSan build too), the nearest-neighbour queries and ZoomOut steps split over threads
+# (test_fmap), and the Sinkhorn sweeps on a team of threads (test_sinkhorn).
 # tests/tsan.supp only hides libgomp's uninstrumented barriers; one OpenBLAS thread keeps
 # OpenBLAS's own (uninstrumented) thread pool out of the picture.
-tsan_tests='test_server|test_server_concurrency|test_client|test_crash|test_fmap'
+tsan_tests='test_server|test_server_concurrency|test_client|test_crash|test_fmap|test_sinkhorn'
 cmake -S . -B build-tsan -DCMAKE_BUILD_TYPE=Debug -DSM_TSAN=ON >/dev/null
 cmake --build build-tsan -j"$jobs" --target shapematchd shapematch test_server \
-  test_server_concurrency test_client test_crash test_fmap
+  test_server_concurrency test_client test_crash test_fmap test_sinkhorn
 (cd build-tsan && SM_TEST_SYNTHETIC_ONLY=1 OPENBLAS_NUM_THREADS=1 \
    TSAN_OPTIONS="halt_on_error=1 suppressions=$PWD/../tests/tsan.supp" \
    ctest --output-on-failure -j"$jobs" --timeout 1500 -R "^($tsan_tests)\$")
