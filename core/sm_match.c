@@ -17,6 +17,7 @@
 #include "sm_global.h"
 #include "sm_laplace.h"
 #include "sm_metrics.h"
+#include "sm_par.h"
 #include "sm_shell.h"
 #include "sm_sinkhorn.h"
 
@@ -333,38 +334,67 @@ static const soft_rows soft_all = {0};
  * (identity for the LB basis; otherwise solved with the leading k-block of the Gram
  * factor): the least-squares map that pulls each Psi_j back through P~ instead of a hard
  * T. On samples (rows->Sx), M_X is the cell masses and the sum runs over the samples. */
-static int soft_fmap(const sm_basis *bx, const sm_basis *by, const sm_plan *plan,
-                     const soft_rows *rows, int k, double *C, sm_error *err) {
-  int32_t nx = bx->n, ny = by->n;
-  double *PY = calloc((size_t)nx * k, sizeof *PY);
-  /* Psi's rows at the plan's columns, k wide: the sums below read them contiguously (the
-   * basis is column-major; reading it in place touched a cache line per entry). */
-  double *Yr = malloc((size_t)plan->ny * k * sizeof *Yr), *acc = malloc((size_t)k * sizeof *acc);
-  if (!PY || !Yr || !acc) {
-    free(PY), free(Yr), free(acc);
-    return sm_error_set(err, SM_ENOMEM, "soft map: out of memory");
+typedef struct soft_sums {
+  const sm_basis *bx, *by;
+  const sm_plan *plan;
+  const soft_rows *rows;
+  int k, parts, phase; /* phase 0: Psi's rows into Yr; 1: the plan's rows into PY */
+  double *Yr, *PY, *acc; /* acc: k per part */
+} soft_sums;
+
+/* Part p of a phase (sm_par_for): its share of the plan's columns (phase 0) or rows (1).
+ * Each row of Yr or PY is written by one part, from the same sums in the same order, so
+ * the result does not depend on the parts. */
+static void soft_sums_job(void *ctx, int p) {
+  const soft_sums *c = ctx;
+  const sm_plan *plan = c->plan;
+  const soft_rows *rows = c->rows;
+  int k = c->k;
+  int32_t n = c->phase ? plan->nx : plan->ny, a = (int32_t)((int64_t)n * p / c->parts);
+  int32_t b = (int32_t)((int64_t)n * (p + 1) / c->parts), nx = c->bx->n, ny = c->by->n;
+  if (c->phase == 0) {
+    for (int j = 0; j < k; j++)
+      for (int32_t col = a; col < b; col++)
+        c->Yr[(size_t)col * k + j] = c->by->phi[(size_t)j * ny + (rows->Sy ? rows->Sy[col] : col)];
+    return;
   }
-  for (int j = 0; j < k; j++)
-    for (int32_t c = 0; c < plan->ny; c++)
-      Yr[(size_t)c * k + j] = by->phi[(size_t)j * ny + (rows->Sy ? rows->Sy[c] : c)];
-  for (int32_t i = 0; i < plan->nx; i++) {
+  double *acc = c->acc + (size_t)p * k;
+  for (int32_t i = a; i < b; i++) {
     double rs = 0;
-    for (int64_t p = plan->rowptr[i]; p < plan->rowptr[i + 1]; p++) rs += plan->val[p];
+    for (int64_t q = plan->rowptr[i]; q < plan->rowptr[i + 1]; q++) rs += plan->val[q];
     if (!(rs > 0)) continue;
     int32_t v = rows->Sx ? rows->Sx[i] : i;
     /* The mass of the weighting M_X is folded in here: row i carries m_i / rs. */
-    double w = (rows->Sx ? rows->wx[i] : bx->mass[i]) / rs;
+    double w = (rows->Sx ? rows->wx[i] : c->bx->mass[i]) / rs;
     memset(acc, 0, (size_t)k * sizeof *acc);
-    for (int64_t p = plan->rowptr[i]; p < plan->rowptr[i + 1]; p++) {
-      double c = w * plan->val[p];
-      const double *psi = Yr + (size_t)plan->col[p] * k;
-      for (int j = 0; j < k; j++) acc[j] += c * psi[j];
+    for (int64_t q = plan->rowptr[i]; q < plan->rowptr[i + 1]; q++) {
+      double cv = w * plan->val[q];
+      const double *psi = c->Yr + (size_t)plan->col[q] * k;
+      for (int j = 0; j < k; j++) acc[j] += cv * psi[j];
     }
-    for (int j = 0; j < k; j++) PY[(size_t)j * nx + v] += acc[j];
+    for (int j = 0; j < k; j++) c->PY[(size_t)j * nx + v] += acc[j];
   }
-  cblas_dgemm(CblasColMajor, CblasTrans, CblasNoTrans, k, k, nx, 1.0, bx->phi, nx, PY, nx, 0.0,
-              C, k);
-  free(PY), free(Yr), free(acc);
+}
+
+static int soft_fmap(const sm_basis *bx, const sm_basis *by, const sm_plan *plan,
+                     const soft_rows *rows, int k, int threads, double *C, sm_error *err) {
+  int32_t nx = bx->n;
+  /* Psi's rows at the plan's columns, k wide (Yr): the sums read them contiguously (the
+   * basis is column-major; reading it in place touched a cache line per entry). */
+  soft_sums c = {bx, by, plan, rows, k, threads > 1 ? threads : 1, 0, NULL, NULL, NULL};
+  c.PY = calloc((size_t)nx * k, sizeof *c.PY);
+  c.Yr = malloc((size_t)plan->ny * k * sizeof *c.Yr);
+  c.acc = malloc((size_t)c.parts * k * sizeof *c.acc);
+  if (!c.PY || !c.Yr || !c.acc) {
+    free(c.PY), free(c.Yr), free(c.acc);
+    return sm_error_set(err, SM_ENOMEM, "soft map: out of memory");
+  }
+  sm_par_for(c.parts, c.parts, soft_sums_job, &c);
+  c.phase = 1;
+  sm_par_for(c.parts, c.parts, soft_sums_job, &c);
+  cblas_dgemm(CblasColMajor, CblasTrans, CblasNoTrans, k, k, nx, 1.0, bx->phi, nx, c.PY, nx,
+              0.0, C, k);
+  free(c.PY), free(c.Yr), free(c.acc);
   if (bx->gram_L &&
       LAPACKE_dpotrs(LAPACK_COL_MAJOR, 'L', k, k, bx->gram_L, bx->k, C, k) != 0)
     return sm_error_set(err, SM_ENUMERIC, "soft map: Gram solve failed at k = %d", k);
@@ -379,7 +409,7 @@ static int soft_pullback_map(const sm_shape *x, const sm_shape *y, const sm_matc
                              const sm_plan *plan, int k, int32_t *T, sm_error *err) {
   double *C = malloc((size_t)k * k * sizeof *C);
   if (!C) return sm_error_set(err, SM_ENOMEM, "init: out of memory");
-  int rc = soft_fmap(x->lb, y->lb, plan, &soft_all, k, C, err);
+  int rc = soft_fmap(x->lb, y->lb, plan, &soft_all, k, o->threads, C, err);
   sm_fmap_pair pair = {x->lb, y->lb, k, k, 1.0};
   const double *Cs[1] = {C};
   sm_knn_opts ko = match_knn(o);
@@ -503,7 +533,7 @@ static int sinkhorn_levels(const sm_shape *x, const sm_shape *y, const sm_match_
     int kn = o->k0 + (o->k1 - o->k0) * (l + 1) / L;
     sm_plan *plan = NULL;
     rc = embed_sinkhorn(bx, by, &rows, k, C, o, &plan, err);
-    if (!rc) rc = soft_fmap(bx, by, plan, &rows, kn, C, err);
+    if (!rc) rc = soft_fmap(bx, by, plan, &rows, kn, o->threads, C, err);
     sm_plan_destroy(plan);
     k = kn;
   }
