@@ -315,7 +315,35 @@ static int64_t dedup_row(int64_t *k, int64_t len) {
 
 /* Row-sorted, deduplicated keys (col << 1 | knn flag) of the pair list and the CSR row
  * pointers; *keys is allocated here. */
-static int csr_keys(const sk_pairs *pr, int32_t nx, int64_t *rowptr, int64_t **keys) {
+/* Row parts of the support's construction (sm_team_for): row i of part p of np. */
+typedef struct sk_rows_job {
+  int np;
+  const int64_t *end; /* csr_keys: row i's keys end at end[i] (and begin at end[i - 1]) */
+  int64_t *key, *len; /* csr_keys: each row deduplicated in place, its length in len[i] */
+  sk_support *s;      /* fill_support: columns and exact costs per row */
+  const double *F, *G;
+  int32_t d;
+  int64_t maxlen[SM_PAR_MAX_THREADS];
+} sk_rows_job;
+
+static void rows_of(int32_t nx, int p, int np, int32_t *a, int32_t *b) {
+  *a = (int32_t)((int64_t)nx * p / np);
+  *b = (int32_t)((int64_t)nx * (p + 1) / np);
+}
+
+static void dedup_job(void *ctx, int p) {
+  sk_rows_job *c = ctx;
+  int32_t a, b;
+  rows_of(c->s->nx, p, c->np, &a, &b);
+  for (int32_t i = a; i < b; i++) {
+    int64_t beg = i ? c->end[i - 1] : 0;
+    c->len[i] = dedup_row(c->key + beg, c->end[i] - beg);
+  }
+}
+
+static int csr_keys(const sk_pairs *pr, sk_support *s, sm_team *team, int64_t **keys) {
+  int32_t nx = s->nx;
+  int64_t *rowptr = s->rowptr;
   int64_t *end = calloc((size_t)nx + 1, sizeof *end);
   int64_t *key = malloc(sizeof(int64_t) * (size_t)(pr->len ? pr->len : 1));
   if (!end || !key) {
@@ -326,11 +354,14 @@ static int csr_keys(const sk_pairs *pr, int32_t nx, int64_t *rowptr, int64_t **k
   for (int32_t i = 0; i < nx; i++) end[i + 1] += end[i];
   for (int64_t p = 0; p < pr->len; p++)
     key[end[pr->i[p]]++] = ((int64_t)pr->j[p] << 1) | pr->flag[p];
-  /* end[i] is now the end of row i; deduplicate and compact in place */
+  /* end[i] is now the end of row i; deduplicate each row (by parts, lengths in
+   * rowptr[i + 1]), then compact in place */
+  sk_rows_job c = {.np = sm_team_threads(team), .end = end, .key = key, .len = rowptr + 1, .s = s};
+  sm_team_for(team, c.np, dedup_job, &c);
   int64_t w = 0, beg = 0;
   rowptr[0] = 0;
   for (int32_t i = 0; i < nx; i++) {
-    int64_t len = dedup_row(key + beg, end[i] - beg);
+    int64_t len = rowptr[i + 1];
     memmove(key + w, key + beg, sizeof(int64_t) * (size_t)len);
     beg = end[i];
     w += len;
@@ -341,20 +372,35 @@ static int csr_keys(const sk_pairs *pr, int32_t nx, int64_t *rowptr, int64_t **k
   return 0;
 }
 
-/* Columns, exact costs, c0 and the CSC transpose from the keys. */
-static int fill_support(sk_support *s, const int64_t *key, const double *F, const double *G,
-                        int32_t d) {
-  double sum = 0;
-  for (int32_t i = 0; i < s->nx; i++) {
+static void cost_job(void *ctx, int p) {
+  sk_rows_job *c = ctx;
+  sk_support *s = c->s;
+  int32_t a, b, d = c->d;
+  rows_of(s->nx, p, c->np, &a, &b);
+  c->maxlen[p] = 0;
+  for (int32_t i = a; i < b; i++) {
     int64_t len = s->rowptr[i + 1] - s->rowptr[i];
-    if (len > s->maxlen) s->maxlen = (int32_t)len;
-    for (int64_t p = s->rowptr[i]; p < s->rowptr[i + 1]; p++) {
-      int32_t j = (int32_t)(key[p] >> 1);
-      s->col[p] = j;
-      s->cost[p] = sm_knn_dist2(F + (size_t)i * d, G + (size_t)j * d, d);
-      if (key[p] & 1) s->nnz_knn++, sum += s->cost[p];
-      s->colptr[j + 1]++;
+    if (len > c->maxlen[p]) c->maxlen[p] = len;
+    for (int64_t q = s->rowptr[i]; q < s->rowptr[i + 1]; q++) {
+      int32_t j = (int32_t)(c->key[q] >> 1);
+      s->col[q] = j;
+      s->cost[q] = sm_knn_dist2(c->F + (size_t)i * d, c->G + (size_t)j * d, d);
     }
+  }
+}
+
+/* Columns, exact costs (by row parts), c0 (summed in CSR order) and the CSC transpose
+ * from the keys. */
+static int fill_support(sk_support *s, int64_t *key, const double *F, const double *G,
+                        int32_t d, sm_team *team) {
+  sk_rows_job c = {.np = sm_team_threads(team), .key = key, .s = s, .F = F, .G = G, .d = d};
+  sm_team_for(team, c.np, cost_job, &c);
+  for (int p = 0; p < c.np; p++)
+    if (c.maxlen[p] > s->maxlen) s->maxlen = (int32_t)c.maxlen[p];
+  double sum = 0;
+  for (int64_t q = 0; q < s->nnz; q++) {
+    if (key[q] & 1) s->nnz_knn++, sum += s->cost[q];
+    s->colptr[s->col[q] + 1]++;
   }
   s->c0 = s->nnz_knn ? sum / (double)s->nnz_knn : 0.0;
   for (int32_t j = 0; j < s->ny; j++) {
@@ -375,20 +421,22 @@ static int fill_support(sk_support *s, const int64_t *key, const double *F, cons
   return 0;
 }
 
+/* team (or NULL) runs the per-row work; the support does not depend on it. */
 static int build_support(const sk_pairs *pr, const double *F, int32_t nx, const double *G,
-                         int32_t ny, int32_t d, sk_support *s) {
+                         int32_t ny, int32_t d, sm_team *team, sk_support *s) {
   memset(s, 0, sizeof *s);
   s->nx = nx, s->ny = ny;
   s->rowptr = malloc(sizeof(int64_t) * ((size_t)nx + 1));
   s->colptr = calloc((size_t)ny + 1, sizeof(int64_t));
   int64_t *key = NULL;
-  if (!s->rowptr || !s->colptr || csr_keys(pr, nx, s->rowptr, &key)) goto oom;
+  if (!s->rowptr || !s->colptr || csr_keys(pr, s, team, &key)) goto oom;
   s->nnz = s->rowptr[nx];
   size_t nz = (size_t)(s->nnz ? s->nnz : 1);
   s->col = malloc(sizeof(int32_t) * nz), s->cost = malloc(sizeof(double) * nz);
   s->row = malloc(sizeof(int32_t) * nz), s->ccost = malloc(sizeof(double) * nz);
   s->cpos = malloc(sizeof(int64_t) * nz);
-  if (!s->col || !s->cost || !s->row || !s->ccost || !s->cpos || fill_support(s, key, F, G, d))
+  if (!s->col || !s->cost || !s->row || !s->ccost || !s->cpos ||
+      fill_support(s, key, F, G, d, team))
     goto oom;
   free(key);
   return 0;
@@ -858,7 +906,7 @@ static int retruncate(sk_solver *sv, const double *F, const double *G, int32_t d
   free((void *)c.A), free((void *)c.B);
   if (!rc) {
     sk_support S;
-    rc = build_support(&pr, F, sv->nx, G, sv->ny, d, &S);
+    rc = build_support(&pr, F, sv->nx, G, sv->ny, d, sv->team, &S);
     if (!rc) {
       *added = count_new(&S, &sv->S);
       support_free(&sv->S);
@@ -960,7 +1008,7 @@ static int build_initial(sk_solver *sv, const double *F, const double *G, int32_
   sv->st->t_knn = t1 - t0;
   if (!rc && !sv->o->no_backbone && add_backbone(F, sv->nx, G, sv->ny, d, sv->a, sv->b, &pr))
     rc = sm_error_set(err, SM_ENOMEM, "sinkhorn: no memory for the backbone");
-  if (!rc && build_support(&pr, F, sv->nx, G, sv->ny, d, &sv->S))
+  if (!rc && build_support(&pr, F, sv->nx, G, sv->ny, d, sv->team, &sv->S))
     rc = sm_error_set(err, SM_ENOMEM, "sinkhorn: no memory for a support of %lld pairs",
                       (long long)pr.len);
   pairs_free(&pr);
