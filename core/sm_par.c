@@ -57,10 +57,12 @@ static void *team_helper(void *arg) {
   sm_team *t = arg;
   unsigned seen = 0;
   for (;;) {
-    for (int s = 0; s < TEAM_SPIN && atomic_load(&t->gen) == seen && !atomic_load(&t->stop); s++)
+    for (int s = 0; s < TEAM_SPIN && atomic_load(&t->gen) == seen && !atomic_load(&t->stop);
+         s++)
       CPU_RELAX();
     pthread_mutex_lock(&t->mu);
-    while (atomic_load(&t->gen) == seen && !atomic_load(&t->stop)) pthread_cond_wait(&t->go, &t->mu);
+    while (atomic_load(&t->gen) == seen && !atomic_load(&t->stop))
+      pthread_cond_wait(&t->go, &t->mu);
     par_run *r = t->run;
     pthread_mutex_unlock(&t->mu);
     if (atomic_load(&t->stop)) return NULL;

@@ -242,17 +242,30 @@ static void sort_along(const double *X, int32_t n, int32_t d, const double *mu,
   qsort(key, (size_t)n, sizeof *key, key_cmp);
 }
 
+/* The two sorts of the backbone, one per job (sm_team_for). */
+typedef struct sk_sort_job {
+  const double *X[2], *mu, *v;
+  int32_t n[2], d;
+  sk_key *key[2];
+} sk_sort_job;
+
+static void sort_job(void *ctx, int s) {
+  sk_sort_job *c = ctx;
+  sort_along(c->X[s], c->n[s], c->d, c->mu, c->v, c->key[s]);
+}
+
 /* North-west-corner rule on the two sorted lists: the support of a feasible plan for
- * (a, b) with at most nx + ny - 1 entries; every row and column appears. */
+ * (a, b) with at most nx + ny - 1 entries; every row and column appears. team (or NULL)
+ * runs the two sorts. */
 static int add_backbone(const double *F, int32_t nx, const double *G, int32_t ny, int32_t d,
-                        const double *a, const double *b, sk_pairs *pr) {
+                        const double *a, const double *b, sm_team *team, sk_pairs *pr) {
   double *tmp = malloc(sizeof(double) * 3 * (size_t)d);
   sk_key *kx = malloc(sizeof(sk_key) * (size_t)nx), *ky = malloc(sizeof(sk_key) * (size_t)ny);
   int rc = SM_ENOMEM;
   if (tmp && kx && ky && !pairs_reserve(pr, (int64_t)nx + ny)) {
     principal_axis(F, nx, G, ny, d, tmp, tmp + d, tmp + 2 * d);
-    sort_along(F, nx, d, tmp, tmp + d, kx);
-    sort_along(G, ny, d, tmp, tmp + d, ky);
+    sk_sort_job sj = {{F, G}, tmp, tmp + d, {nx, ny}, d, {kx, ky}};
+    sm_team_for(team, 2, sort_job, &sj);
     int32_t i = 0, j = 0;
     double ra = a[kx[0].i], rb = b[ky[0].i];
     for (;;) {
@@ -757,7 +770,8 @@ static int run_level(sk_solver *sv, double eps, int maxit, double tol, sm_error 
     double r = NAN;
     int out = 0;
     int swept = scaling && !stale &&
-                (sv->team ? scaling_sweep_team(sv, lam, &r, &out) : scaling_sweep(sv, lam, &r, &out));
+                (sv->team ? scaling_sweep_team(sv, lam, &r, &out)
+                          : scaling_sweep(sv, lam, &r, &out));
     if (swept) {
       if (out) { /* bounded scalings keep u K v clear of overflow and underflow */
         stale = !absorb(sv, eps);
@@ -902,7 +916,8 @@ static int retruncate(sk_solver *sv, const double *F, const double *G, int32_t d
     rc = scan_blocks(F, sv->nx, G, sv->ny, d, rt_block, &c);
     if (!rc) rc = c.rc;
   }
-  if (!rc && !sv->o->no_backbone) rc = add_backbone(F, sv->nx, G, sv->ny, d, sv->a, sv->b, &pr);
+  if (!rc && !sv->o->no_backbone)
+    rc = add_backbone(F, sv->nx, G, sv->ny, d, sv->a, sv->b, sv->team, &pr);
   free((void *)c.A), free((void *)c.B);
   if (!rc) {
     sk_support S;
@@ -1006,7 +1021,8 @@ static int build_initial(sk_solver *sv, const double *F, const double *G, int32_
   int rc = add_knn_pairs(F, sv->nx, G, sv->ny, d, sv->o, &pr, err);
   double t1 = sm_now();
   sv->st->t_knn = t1 - t0;
-  if (!rc && !sv->o->no_backbone && add_backbone(F, sv->nx, G, sv->ny, d, sv->a, sv->b, &pr))
+  if (!rc && !sv->o->no_backbone &&
+      add_backbone(F, sv->nx, G, sv->ny, d, sv->a, sv->b, sv->team, &pr))
     rc = sm_error_set(err, SM_ENOMEM, "sinkhorn: no memory for the backbone");
   if (!rc && build_support(&pr, F, sv->nx, G, sv->ny, d, sv->team, &sv->S))
     rc = sm_error_set(err, SM_ENOMEM, "sinkhorn: no memory for a support of %lld pairs",
