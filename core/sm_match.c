@@ -288,12 +288,17 @@ static int with_landmarks(const sm_shape *s, const int32_t *lm, int nl, int stri
   return SM_OK;
 }
 
+/* The coarse map's options for orientation sign (+1 direct, -1 mirrored). */
+static void coarse_opts(const sm_match_opts *o, int sign, sm_coarse_opts *co) {
+  sm_coarse_opts_default(co);
+  co->k0 = o->coarse_k;
+  co->orient_sign = sign;
+}
+
 static int coarse_map(const sm_shape *x, const sm_shape *y, const sm_match_opts *o, int sign,
                       double *C, sm_error *err) {
   sm_coarse_opts co;
-  sm_coarse_opts_default(&co);
-  co.k0 = o->coarse_k;
-  co.orient_sign = sign;
+  coarse_opts(o, sign, &co);
   const double *dx = x->desc, *dy = y->desc;
   double *lx = NULL, *ly = NULL;
   int nd = x->n_desc, ndy = y->n_desc;
@@ -1227,6 +1232,25 @@ static int tip_search(const sm_shape *x, const sm_shape *y, const sm_match_opts 
   return rc;
 }
 
+/* A match on two threads fills both shapes' caches (coarse-map operators, farthest-point
+ * samples) at once, one shape per thread, before the pipeline asks for them one after
+ * the other: a first match of new shapes (a CLI request, the daemon's first) pays for
+ * them. The same entries the pipeline would compute. */
+typedef struct warm_job {
+  const sm_shape *s[2];
+  const sm_match_opts *o;
+} warm_job;
+
+static void warm_job_run(void *ctx, int i) {
+  const warm_job *w = ctx;
+  sm_coarse_opts co;
+  coarse_opts(w->o, +1, &co);
+  if (w->o->nlandmarks == 0) shape_coarse(w->s[i], &co);
+  const int32_t *S;
+  const double *cw;
+  shape_fps(w->s[i], w->o->samples, &S, &cw);
+}
+
 int sm_match(const sm_shape *x, const sm_shape *y, const sm_match_opts *opts,
              sm_match_result *res, sm_error *err) {
   int rc = check_opts(x, y, opts, err);
@@ -1239,6 +1263,10 @@ int sm_match(const sm_shape *x, const sm_shape *y, const sm_match_opts *opts,
     return sm_error_set(err, SM_ENOMEM, "match: out of memory");
   }
   double t0 = sm_now();
+  if (o->threads > 1 && x->cache && y->cache && x->cache != y->cache) {
+    warm_job w = {{x, y}, o};
+    sm_par_for(2, 2, warm_job_run, &w);
+  }
   if (o->multi_start && !o->init_map) rc = multi_start(x, y, o, res, err);
   else rc = attempt(x, y, o, res, err);
   if (!rc && o->orientation_fix && !o->init_map && res->orientation < 0)
