@@ -719,8 +719,8 @@ static void zembed_job(void *ctx, int i) {
     zfactor(z, q, UY, nc, D, off, j->roff[pi]);
     return;
   }
-  int32_t r0 = (int32_t)((int64_t)nc * r / j->yparts);
-  int32_t r1 = (int32_t)((int64_t)nc * (r + 1) / j->yparts);
+  int32_t r0, r1;
+  sm_par_part(nc, r, j->yparts, &r0, &r1);
   apply_map(UY + (size_t)r0 * q->K, q->K, r1 - r0, q->k, q->Cw, q->w,
             z->EY + (size_t)r0 * D + off, D);
 }

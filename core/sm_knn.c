@@ -246,8 +246,8 @@ static void rows_part(const sm_knn *ix, const double *U, const double *ubar, int
 
 static void build_job(void *ctx, int p) {
   build_pass *b = ctx;
-  int32_t n = b->ix->ny, j0 = (int32_t)((int64_t)n * p / b->np);
-  int32_t j1 = (int32_t)((int64_t)n * (p + 1) / b->np);
+  int32_t j0, j1;
+  sm_par_part(b->ix->ny, p, b->np, &j0, &j1);
   if (b->fill) rows_part(b->ix, b->U, b->ubar, j0, j1, &b->ym[p], &b->um[p]);
   else b->ym[p] = radius_part(b->ix, j0, j1);
 }
@@ -1132,8 +1132,7 @@ static int query_both_brute(const sm_knn *ix, const double *X, int32_t nx, int K
                          idx, idx_yx, dist2, dist_yx};
     if (split_dirs && t == 0) jobs[t].idx = NULL; /* ws[0]: the columns' lists only */
     if (!split_dirs) part_rows(nx, t, n, &jobs[t].i0, &jobs[t].i1);
-    jobs[t].j0 = (int32_t)((int64_t)ix->ny * t / n);
-    jobs[t].j1 = (int32_t)((int64_t)ix->ny * (t + 1) / n);
+    sm_par_part(ix->ny, t, n, &jobs[t].j0, &jobs[t].j1);
   }
   run_jobs(both_job_run, jobs, sizeof *jobs, n);
   for (int t = 1; t < n && !split_dirs; t++)

@@ -355,8 +355,8 @@ static void soft_sums_job(void *ctx, int p) {
   const sm_plan *plan = c->plan;
   const soft_rows *rows = c->rows;
   int k = c->k;
-  int32_t n = c->phase ? plan->nx : plan->ny, a = (int32_t)((int64_t)n * p / c->parts);
-  int32_t b = (int32_t)((int64_t)n * (p + 1) / c->parts), nx = c->bx->n, ny = c->by->n;
+  int32_t a, b, nx = c->bx->n, ny = c->by->n;
+  sm_par_part(c->phase ? plan->nx : plan->ny, p, c->parts, &a, &b);
   if (c->phase == 0) {
     for (int j = 0; j < k; j++)
       for (int32_t col = a; col < b; col++)

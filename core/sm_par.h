@@ -19,9 +19,18 @@
 #ifndef SM_PAR_H
 #define SM_PAR_H
 
+#include <stdint.h>
+
 #define SM_PAR_MAX_THREADS 8
 
 void sm_par_for(int n, int threads, void (*fn)(void *ctx, int i), void *ctx);
+
+/* Part p of `parts` near-equal consecutive parts of 0 .. n - 1: [*a, *b). The parts
+ * depend on n and parts only, never on which thread runs them. */
+static inline void sm_par_part(int32_t n, int p, int parts, int32_t *a, int32_t *b) {
+  *a = (int32_t)((int64_t)n * p / parts);
+  *b = (int32_t)((int64_t)n * (p + 1) / parts);
+}
 
 typedef struct sm_team sm_team;
 

@@ -339,15 +339,10 @@ typedef struct sk_rows_job {
   int64_t maxlen[SM_PAR_MAX_THREADS];
 } sk_rows_job;
 
-static void rows_of(int32_t nx, int p, int np, int32_t *a, int32_t *b) {
-  *a = (int32_t)((int64_t)nx * p / np);
-  *b = (int32_t)((int64_t)nx * (p + 1) / np);
-}
-
 static void dedup_job(void *ctx, int p) {
   sk_rows_job *c = ctx;
   int32_t a, b;
-  rows_of(c->s->nx, p, c->np, &a, &b);
+  sm_par_part(c->s->nx, p, c->np, &a, &b);
   for (int32_t i = a; i < b; i++) {
     int64_t beg = i ? c->end[i - 1] : 0;
     c->len[i] = dedup_row(c->key + beg, c->end[i] - beg);
@@ -389,7 +384,7 @@ static void cost_job(void *ctx, int p) {
   sk_rows_job *c = ctx;
   sk_support *s = c->s;
   int32_t a, b, d = c->d;
-  rows_of(s->nx, p, c->np, &a, &b);
+  sm_par_part(s->nx, p, c->np, &a, &b);
   c->maxlen[p] = 0;
   for (int32_t i = a; i < b; i++) {
     int64_t len = s->rowptr[i + 1] - s->rowptr[i];
@@ -559,11 +554,6 @@ typedef struct sk_step {
   int ok[SM_PAR_MAX_THREADS], out[SM_PAR_MAX_THREADS];
 } sk_step;
 
-static void part_range(int32_t n, int p, int np, int32_t *a, int32_t *b) {
-  *a = (int32_t)((int64_t)n * p / np);
-  *b = (int32_t)((int64_t)n * (p + 1) / np);
-}
-
 /* Kernel entries of rows i0 .. i1 - 1 (and their CSC copies when threaded); 1 if finite. */
 static int absorb_rows(sk_solver *sv, int32_t i0, int32_t i1, double inv_eps) {
   const sk_support *S = &sv->S;
@@ -583,7 +573,7 @@ static int absorb_rows(sk_solver *sv, int32_t i0, int32_t i1, double inv_eps) {
 static void absorb_job(void *ctx, int p) {
   sk_step *c = ctx;
   int32_t i0, i1;
-  part_range(c->sv->nx, p, c->np, &i0, &i1);
+  sm_par_part(c->sv->nx, p, c->np, &i0, &i1);
   c->ok[p] = absorb_rows(c->sv, i0, i1, c->inv_eps);
 }
 
@@ -686,7 +676,7 @@ static void sweep_rows_job(void *ctx, int p) {
   const double hi = exp(SK_ABSORB), lo = exp(-SK_ABSORB);
   int32_t i0, i1;
   int ok = 1, o = 0;
-  part_range(sv->nx, p, c->np, &i0, &i1);
+  sm_par_part(sv->nx, p, c->np, &i0, &i1);
   for (int32_t i = i0; i < i1; i++) {
     int64_t p0 = S->rowptr[i], p1 = S->rowptr[i + 1];
     sv->rres[i] = 0.0;
@@ -710,7 +700,7 @@ static void sweep_cols_job(void *ctx, int p) {
   const sk_support *S = &sv->S;
   int32_t j0, j1;
   int ok = 1, o = 0;
-  part_range(sv->ny, p, c->np, &j0, &j1);
+  sm_par_part(sv->ny, p, c->np, &j0, &j1);
   for (int32_t j = j0; j < j1; j++) {
     if (S->colptr[j] == S->colptr[j + 1]) continue;
     double cs = 0.0;
