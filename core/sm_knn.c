@@ -490,6 +490,13 @@ typedef struct screen_lists {
 
 typedef struct brute_ws {
   float *Xc, *G;
+  /* G[0 .. g_zero) is zero between blocks (scan_block clears what a block used), so the
+   * next GEMM accumulates (beta = 1); a block reaching beyond it overwrites (beta = 0).
+   * Not calloc: calloc hands over untouched pages, which a beta = 1 GEMM's first read maps
+   * to the shared zero page; its write then replaces each one, and while other threads
+   * of the process run that flushes their TLBs by an interrupt (a third of a two-thread
+   * match's samples in the daemon, whose heaps hand out fresh pages; perf: do_wp_page). */
+  size_t g_zero;
   double *xn;        /* |s (x - center)|^2 per query row */
   double *sn;        /* the row's part of the rounding bound: xn, or |x''|^2 when factored */
   double *Xd;        /* factored: BLK_X rows of s (x - center), then of x'' = L^T of them */
@@ -546,7 +553,8 @@ static int brute_ws_alloc(brute_ws *w, const sm_knn *ix, int32_t nx, int32_t nr,
     if (!w->Xc || !w->xn || !w->sn) return -1;
   }
   if (ix->L && !(w->Xd = malloc((size_t)BLK_X * (ix->d + ix->ds) * sizeof(double)))) return -1;
-  w->G = calloc((size_t)BLK_X * BLK_Y, sizeof(float)); /* kept zero between blocks */
+  w->G = malloc((size_t)BLK_X * BLK_Y * sizeof(float)); /* see g_zero */
+  w->g_zero = 0;
   w->dv = malloc((size_t)(nbuf + cap) * sizeof(double));
   w->iv = malloc((size_t)nbuf * sizeof(int32_t));
   w->vec = malloc((size_t)nmax * sizeof(float));
@@ -871,9 +879,12 @@ static void brute_rows(const sm_knn *ix, brute_ws *w, const float *Xc, const dou
   }
   for (int32_t j0 = 0; j0 < ix->ny; j0 += BLK_Y) {
     int by = ix->ny - j0 < BLK_Y ? ix->ny - j0 : BLK_Y;
+    size_t used = (size_t)bx * by;
     cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasTrans, bx, by, ds + 1, 1.0f, Xc, ds + 1,
-                ix->Ya + (size_t)j0 * (ds + 1), ds + 1, 1.0f, w->G, by);
+                ix->Ya + (size_t)j0 * (ds + 1), ds + 1, used <= w->g_zero ? 1.0f : 0.0f,
+                w->G, by);
     scan_block(w, ix, xrow, xn, bx, i0, j0, by, idx ? cap : 0, capc);
+    if (used > w->g_zero) w->g_zero = used;
   }
   for (int r = 0; r < bx && idx; r++) {
     row_fill c = {ix, Xc + (size_t)r * (ds + 1)};
