@@ -19,7 +19,8 @@
  *      (nearest rank, so with 20 samples p99 is the maximum). Every phase has a time budget:
  *      clients stop sending when it is spent, and the table says how many were done.
  *   2. Overhead: one client; daemon MATCH and in-process sm_match alternate, so drift in
- *      machine load hits both sides alike. Ratio of medians; target <= 1.05. The daemon's
+ *      machine load hits both sides alike. The in-process side runs on the threads a lone
+ *      request gets from the daemon (its idle workers, sm_pool_borrow: min(--threads, 4)). Ratio of medians; target <= 1.05. The daemon's
  *      own t_total (request received -> answer encoded) splits the difference into
  *      server-side work (input-numbering translation, encoding) and transport.
  *   3. Cold: a new daemon on a new data dir, PUT both shapes without prepare, then one
@@ -289,12 +290,16 @@ static int prepare_local(const inputs *in, sm_shape *s[2], sm_error *err) {
   return 0;
 }
 
+/* The most threads the daemon lends one MATCH (SM_SRV_MATCH_THREADS, sm_srv_exec.c). */
+#define DAEMON_MATCH_THREADS 4
+
 /* The daemon's MATCH with default options: sm_match_opts_default, k1 capped by
- * --default-k (100, so unchanged), no Y -> X map. */
-static void local_match_opts(sm_match_opts *mo) {
+ * --default-k (100, so unchanged), no Y -> X map, on `threads` threads. */
+static void local_match_opts(sm_match_opts *mo, int threads) {
   sm_match_opts_default(mo);
   if (mo->k1 > 100) mo->k1 = 100;
   mo->want_yx = 0;
+  mo->threads = threads;
 }
 
 /* ------------------------------------------------------------------ client phases */
@@ -457,7 +462,7 @@ typedef struct local_job {
 static void *local_main(void *arg) {
   local_job *j = arg;
   sm_match_opts mo;
-  local_match_opts(&mo);
+  local_match_opts(&mo, 1); /* one match per thread, as on a busy daemon's workers */
   for (int i = 0; i < j->n; i++) {
     sm_match_result r;
     memset(&r, 0, sizeof r);
@@ -775,8 +780,8 @@ int main(int argc, char **argv) {
     printf("\n[2] overhead: MATCH through the daemon (1 client) vs sm_match in-process\n");
     sm_client *c = NULL;
     if (!od || !ol || !os || connect_client(dA.addr, &c)) rc = 1;
-    sm_match_opts mo;
-    local_match_opts(&mo);
+    sm_match_opts mo; /* a lone request borrows the idle workers (sm_srv_pool.h) */
+    local_match_opts(&mo, threads < DAEMON_MATCH_THREADS ? threads : DAEMON_MATCH_THREADS);
     double t_end = sm_now() + budget;
     int n = 0;
     for (; !rc && n < n_over && sm_now() < t_end; n++) {

@@ -11,6 +11,11 @@
  *       and posts encoded response frames back through the pool's done list + eventfd.
  *       BATCH items and QUERY candidates run as units on several workers at once
  *       (sm_srv_exec fan-out); they share the request's job read-only, except atomics;
+ *     - a MATCH or DISTANCE borrows the pool's idle cores (sm_pool_borrow, at most
+ *       SM_SRV_MATCH_THREADS in all): core threads of that match (sm_par, the tip
+ *       search), started and joined inside sm_match, touching only the match's own data;
+ *       a lone request on an idle daemon runs as fast as the local CLI's two-thread
+ *       match, and a busy daemon lends nothing (one thread per request, as before);
  *     - no other thread. Signal handlers only set sm_srv_signal_flag.
  *   Locks (in the only order they may nest; never hold one while blocking on I/O to a peer)
  *     1. store->mu   (sm_srv_store: index, prepared-shape cache, LRU, single-flight state;

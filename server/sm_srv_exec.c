@@ -52,7 +52,7 @@ static int cancel_cb(void *ud) {
   for (sm_job *a = j; a; a = a->parent) /* a unit also stops with its request */
     if (atomic_load_explicit(&a->cancel, memory_order_relaxed)) return 1;
   if (j->deadline_ns && sm_srv_now_ns() > j->deadline_ns) {
-    j->deadline_hit = 1;
+    atomic_store_explicit(&j->deadline_hit, 1, memory_order_relaxed);
     return 1;
   }
   return 0;
@@ -179,6 +179,10 @@ typedef struct bg_prep {
 } bg_prep;
 
 #define BG_MESH_BYTES (256ull << 20)
+/* The most threads one MATCH or DISTANCE runs on when the pool has idle cores to lend: the
+ * tip search refines its 4 hypotheses at once (sm_match_opts.ext_hypotheses), beyond that
+ * the refinement's neighbour queries gain little. */
+#define SM_SRV_MATCH_THREADS 4
 static _Atomic uint64_t bg_mesh_bytes;
 
 static int bg_cancel_cb(void *ud) {
@@ -626,8 +630,13 @@ static int op_match(sm_job *j, uint8_t opcode, const uint8_t *p, size_t n, resul
   sm_distance_parts d = {0, 0, 0, 0, -1};
   uint64_t t_dist = 0;
   if (!rc) {
+    /* A lone request takes the idle cores too (sm_pool_borrow); the map does not depend
+     * on its threads (sm_match_opts.threads). */
+    int lent = sm_pool_borrow(j->srv->pool, SM_SRV_MATCH_THREADS - 1);
+    mo.threads = 1 + lent;
     int e = multires ? match_multires(j, mx, my, &mo, want_dist, &mr, &d, &t_dist, &err)
                      : sm_match(x, y, &mo, &mr, &err);
+    sm_pool_return(j->srv->pool, lent);
     if (e) rc = fail_core(r, j, e, &err, name);
   }
   if (!rc && want_dist && !multires) {

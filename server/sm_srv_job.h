@@ -10,7 +10,8 @@
  * Contract
  *   - A job is created and freed by the loop thread (sm_srv_conn). Between sm_pool_submit
  *     and its final sm_srv_out a worker owns it: it reads the job's own fields and writes
- *     nothing but deadline_hit; conn is opaque to it (a loop-thread pointer).
+ *     nothing but deadline_hit (atomic: a MATCH's own core threads set it too); conn is
+ *     opaque to it (a loop-thread pointer).
  *   - cancel is the only field both sides touch at once (atomic): 1 = CANCEL or
  *     disconnect, 2 = the drain budget is spent.
  *   - An sm_wbuf is one malloc'd block; sm_wbuf_new returns NULL when out of memory.
@@ -49,7 +50,8 @@ typedef struct sm_job {
   const uint8_t *body;
   uint32_t body_len;
   _Atomic int cancel; /* 1 CANCEL or disconnect, 2 drain budget spent */
-  int deadline_hit;   /* worker only */
+  _Atomic int deadline_hit; /* worker side only: its own thread and the core threads a
+                               MATCH borrowed (sm_pool_borrow) poll the cancel callback */
   struct sm_job *parent; /* a unit of a fanned-out request (sm_srv_exec): the request whose
                             cancel flag also applies; NULL for a request */
   uint64_t recv_ns, deadline_ns;

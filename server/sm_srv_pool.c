@@ -18,6 +18,8 @@ struct sm_pool {
   int depth, cap, stop;
   sm_pool_job *bhead, *btail; /* background queue (sm_srv_pool.h) */
   int bdepth, bcap, bmax, brunning;
+  int running; /* workers inside a job's run(), request or background */
+  int lent;    /* cores lent to running jobs (sm_pool_borrow) */
   pthread_t *th;
   int nth;
   pthread_mutex_t done_mu;
@@ -63,15 +65,17 @@ static void *worker(void *arg) {
       p->depth--;
       sm_met_sub(&sm_met.queue_depth, 1);
     }
+    p->running++;
     pthread_mutex_unlock(&p->mu);
     j->qnext = NULL;
     j->run(j);
+    pthread_mutex_lock(&p->mu);
+    p->running--;
     if (bg) { /* a background slot is free: a waiting background job may start */
-      pthread_mutex_lock(&p->mu);
       p->brunning--;
       if (p->bhead) pthread_cond_broadcast(&p->cv);
-      pthread_mutex_unlock(&p->mu);
     }
+    pthread_mutex_unlock(&p->mu);
   }
 }
 
@@ -169,6 +173,25 @@ void sm_pool_set_background(sm_pool *p, int bg_max, int bg_cap) {
 int sm_pool_submit(sm_pool *p, sm_pool_job *j) { return submit(p, j, 0); }
 int sm_pool_submit_force(sm_pool *p, sm_pool_job *j) { return submit(p, j, 1); }
 int sm_pool_threads(const sm_pool *p) { return p->nth; }
+
+int sm_pool_borrow(sm_pool *p, int want) {
+  pthread_mutex_lock(&p->mu);
+  int bg_ready = p->bmax - p->brunning; /* waiting background jobs a worker may start */
+  if (bg_ready > p->bdepth) bg_ready = p->bdepth;
+  if (bg_ready < 0) bg_ready = 0;
+  int spare = p->nth - p->running - p->depth - bg_ready - p->lent;
+  int n = want < spare ? want : spare;
+  if (n < 0) n = 0;
+  p->lent += n;
+  pthread_mutex_unlock(&p->mu);
+  return n;
+}
+
+void sm_pool_return(sm_pool *p, int n) {
+  pthread_mutex_lock(&p->mu);
+  p->lent -= n;
+  pthread_mutex_unlock(&p->mu);
+}
 
 int sm_pool_fd(const sm_pool *p) { return p->efd; }
 

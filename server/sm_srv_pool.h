@@ -56,6 +56,15 @@ int sm_pool_submit_bg(sm_pool *p, sm_pool_job *j);
  * jobs (clamped to threads - 1), at most bg_cap waiting. */
 void sm_pool_set_background(sm_pool *p, int bg_max, int bg_cap);
 int sm_pool_threads(const sm_pool *p);
+/* Lending idle cores to a running job (the pool's threads are the daemon's CPU budget): at
+ * most want of the workers that neither run a job nor have a queued one to take (a
+ * request, or a background job within bg_max), less those lent already; returns how many
+ * (0 when the pool is busy). The job runs that many threads of its own beside its worker and hands them back
+ * with sm_pool_return. Workers never wait for lent cores: a job submitted meanwhile
+ * starts at once, so the cores are oversubscribed by at most the lent count until the
+ * borrower returns them. */
+int sm_pool_borrow(sm_pool *p, int want);
+void sm_pool_return(sm_pool *p, int n);
 /* On a worker thread: its index 0..threads-1; elsewhere -1. */
 int sm_pool_worker_index(void);
 int sm_pool_fd(const sm_pool *p);
