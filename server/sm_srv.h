@@ -13,7 +13,8 @@
  *       (sm_srv_exec fan-out); they share the request's job read-only, except atomics;
  *     - a MATCH or DISTANCE borrows the pool's idle cores (sm_pool_borrow, at most
  *       SM_SRV_MATCH_THREADS in all): core threads of that match (sm_par, the tip
- *       search), started and joined inside sm_match, touching only the match's own data;
+ *       search), started and joined inside sm_match, touching the match's own data and the
+ *       shapes' internally locked caches (sm_match.h);
  *       a lone request on an idle daemon runs as fast as the local CLI's two-thread
  *       match, and a busy daemon lends nothing (one thread per request, as before);
  *     - no other thread. Signal handlers only set sm_srv_signal_flag.
