@@ -1567,6 +1567,7 @@ static int cmd_distance(int argc, char **argv) {
   if (take_server(&argc, argv, &addr) || parse_match_args(argc, argv, &m)) return usage(stderr);
   if (addr) return remote_distance(addr, &m);
   sm_distance_match_opts(&m.mo);
+  if (m.co.basis) m.mo.basis = m.co.basis; /* --basis given: the distance uses it */
   m.ro.mode = SM_MULTIRES_OFF; /* the distance needs the full-resolution bases */
   int rc = run_match(&m, &mr);
   sm_distance_parts d;

@@ -5,6 +5,11 @@
 #include <string.h>
 
 #define SM_DIST_TIMES 8
+/* The shipped map term compares the first SM_DIST_MAP_TIMES times (10^-3 .. 7.2 10^-3 at
+ * unit area): the local scale. The larger times mix in how each body part sits in the
+ * whole, which a stretch or another person's proportions move as much as a class change
+ * (docs/RESULTS.md section 3, map term study). */
+#define SM_DIST_MAP_TIMES 4
 #define SM_DIST_SPECTRUM 70 /* shipped K */
 #define SM_DIST_PAPER_SPECTRUM 50
 
@@ -15,9 +20,9 @@ void sm_distance_opts_default(sm_distance_opts *o) {
   o->level_weight = SM_DIST_LEVEL_WEIGHT;
 }
 
-/* F (n x SM_DIST_TIMES, column-major): log HKS at the fixed times; centered (each column
- * minus its area-weighted mean) when center is set. */
-static int features(const sm_shape *s, double *F, int center) {
+/* F (n x SM_DIST_TIMES, column-major): log HKS at the fixed times, each column minus its
+ * area-weighted mean. */
+static void features(const sm_shape *s, double *F) {
   const sm_basis *b = s->lb;
   int32_t n = b->n;
   memset(F, 0, (size_t)n * SM_DIST_TIMES * sizeof *F);
@@ -35,10 +40,8 @@ static int features(const sm_shape *s, double *F, int center) {
       area += b->mass[v];
     }
     mean /= area;
-    if (center)
-      for (int32_t v = 0; v < n; v++) f[v] -= mean;
+    for (int32_t v = 0; v < n; v++) f[v] -= mean;
   }
-  return SM_OK;
 }
 
 static double cos_dist(double ab, double aa, double bb) {
@@ -71,19 +74,20 @@ static int cmp_wval(const void *a, const void *b) {
   return (x > y) - (x < y);
 }
 
-/* Shipped map term X -> Y: per vertex v of X, the RMS over the times of
- * log h_X(v, t) - log h_Y(T(v), t); the area-weighted median of it over X. W: nx slots. */
+/* Shipped map term X -> Y: per vertex v of X, the RMS over the first SM_DIST_MAP_TIMES
+ * times of the centered log h_X(v, t) - log h_Y(T(v), t); the area-weighted median of it
+ * over X. W: nx slots. */
 static double median_term(const sm_shape *x, const double *Fx, const sm_shape *y,
                           const double *Fy, const int32_t *T, wval *W) {
   int32_t nx = x->mesh->nv, ny = y->mesh->nv;
   double area = 0;
   for (int32_t v = 0; v < nx; v++) {
     double ss = 0;
-    for (int q = 0; q < SM_DIST_TIMES; q++) {
+    for (int q = 0; q < SM_DIST_MAP_TIMES; q++) {
       double d = Fx[(size_t)q * nx + v] - Fy[(size_t)q * ny + T[v]];
       ss += d * d;
     }
-    W[v].r = sqrt(ss / SM_DIST_TIMES);
+    W[v].r = sqrt(ss / SM_DIST_MAP_TIMES);
     W[v].m = x->lb->mass[v];
     area += W[v].m;
   }
@@ -185,8 +189,10 @@ int sm_shape_distance_ex(const sm_shape *x, const sm_shape *y, const int32_t *T_
     free(W);
     return sm_error_set(err, SM_ENOMEM, "distance: out of memory");
   }
-  features(x, Fx, !shipped);
-  features(y, Fy, !shipped);
+  /* both definitions center: the shipped one so that, like S, it ignores the mesh's area
+   * (normal noise inflates it and lifts every log h by about the same amount) */
+  features(x, Fx);
+  features(y, Fy);
   if (shipped) {
     out->point_xy = squash(median_term(x, Fx, y, Fy, T_xy, W));
     out->point_yx = squash(median_term(y, Fy, x, Fx, T_yx, W));
@@ -221,6 +227,7 @@ int sm_shape_distance(const sm_shape *x, const sm_shape *y, const int32_t *T_xy,
 }
 
 void sm_distance_match_opts(sm_match_opts *o) {
+  o->basis = SM_MATCH_LB;
   o->want_yx = 1;
   o->orientation_fix = 0;
   o->extremities = SM_EXT_OFF;

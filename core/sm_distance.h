@@ -4,6 +4,8 @@
  * area); symmetric.
  *
  * Shipped definition (issue 11; docs/RESULTS.md section 3 has the measurements):
+ *   total = (S + w (M_xy + M_yx) / 2) / (1 + w), w = map_weight = SM_DIST_MAP_WEIGHT = 1,
+ *   each term reported as 1 - exp(-term) (same order, equal to first order, < 1).
  *   Spectral term S. With r_i = log(lambda_i(X) / lambda_i(Y)) over i = 1..K (K = 70, or
  *   fewer if a basis is smaller), the non-zero LB eigenvalues in order, and m their mean:
  *   S = sqrt(mean_i (r_i - m)^2 + beta m^2), beta = level_weight = SM_DIST_LEVEL_WEIGHT = 0
@@ -13,25 +15,27 @@
  *   reports, and surface perturbations that leave the shape alone move it (normal noise of
  *   0.2 edge lengths inflates the area and lifts every log eigenvalue by ~0.03, the
  *   quadric decimation to 40% lifts the high ones by FEM error), by as much as the level
- *   separating tosca's three human classes (0.015-0.025). Chosen by a held-out check
- *   (docs/RESULTS.md section 3): K and beta picked on the suite's robustness queries and
- *   leave-one-out; checked on 160 deformed copies of other shapes, where every beta > 0
- *   sent more noisy humans to another human class (K = 50 and 80, beta = 0.25..1: 26-28
- *   of 32 right; beta = 0: 29-30; ShapeDNA 29), and K = 60..80 is a plateau.
- *   Map terms M_xy, M_yx. Per vertex v of X, the RMS over 8 times t_s = 10^(-3 + 2s/7) of
- *   log h_X(v, t) - log h_Y(T_xy(v), t), h the heat kernel signature in the LB basis
- *   (h(v, t) = sum_i exp(-t lambda_i) phi_i(v)^2, not centered); M_xy = its area-weighted
- *   MEDIAN over X, so the vertices a map gets wrong (up to half the area) cannot move it.
- *   M_yx likewise through T_yx.
- *   Each term is reported as 1 - exp(-term) (same order, equal to first order, < 1).
- *   Total = (S + w (M_xy + M_yx) / 2) / (1 + w), w = map_weight = SM_DIST_MAP_WEIGHT = 0:
- *   measured on tosca_classification_5k (bench/eval/dist_study.py, maps of the suite's
- *   distance preset), every w > 0 lowered the leave-one-out 1-NN accuracy with the default
- *   maps and did not lift the deformed queries' accuracy above the spectral term's, so
- *   the shipped total is the spectral term (sm_distance_uses_maps() = 0: QUERY needs no
- *   match); the map terms are still computed and reported (point_xy, point_yx) and w is
- *   an option (sm_distance_opts).
+ *   separating tosca's three human classes (0.015-0.025). K and beta were chosen by a
+ *   held-out check (bench/eval/spectral_study.py); K = 60..80 is a plateau.
+ *   Map terms M_xy, M_yx. Per vertex v of X, the RMS over the 4 smallest of 8 times
+ *   t_s = 10^(-3 + 2s/7) (10^-3 .. 7.2 10^-3) of c_X(v, t) - c_Y(T_xy(v), t), c = log h
+ *   minus its area-weighted mean over the shape, h the heat kernel signature in the LB basis
+ *   (h(v, t) = sum_i exp(-t lambda_i) phi_i(v)^2); M_xy = its area-weighted MEDIAN over X,
+ *   so the vertices a map gets wrong (up to half the area) cannot move it. M_yx likewise
+ *   through T_yx. Centered like S is scale-blind (noise lifts every log h alike); small
+ *   times only: they measure each part's local shape, which a stretch or a change of pose
+ *   keeps better than the larger times, which see how the parts sit in the whole.
+ *   Chosen by a held-out check (bench/eval/map_term_study.py, maps of this distance
+ *   preset): picked on the 40 classified shapes and the suite's 40 deformed queries, it
+ *   keeps S's leave-one-out (0.975) and 80/20 and lifts 70/30 (0.969 -> 0.975), mAP
+ *   (0.939 -> 0.968) and the 1.2x stretched queries (6 -> 7 of 8); on 160 held-out deformed
+ *   queries it is right for 152 (S alone 143, ShapeDNA 133), never fewer than S for a
+ *   deformation. The raw (not centered), all-times, larger-times, mean and quartile
+ *   variants and w = 0.5, 2 were measured too (the table in RESULTS.md).
  *   spectrum_elastic = -1 (the elastic spectrum separated the classes worse: 0.75 LOO).
+ *   The maps are the LB basis' (sm_distance_match_opts): the term compares LB heat
+ *   signatures, which a map refined in that basis aligns; the elastic basis' maps weighted
+ *   in lowered the leave-one-out accuracy to 0.95 (RESULTS.md section 3).
  *
  * Paper-style definition (SM_DIST_PAPER; the shipped one before issue 11): features = the
  * log HKS above, each column centered by its area-weighted mean; point term X -> Y =
@@ -62,7 +66,7 @@ enum sm_distance_def {
   SM_DIST_SHIPPED = 0, /* the definition above */
   SM_DIST_PAPER = 1    /* the paper-style definition shipped before issue 11 (below) */
 };
-#define SM_DIST_MAP_WEIGHT 0.0
+#define SM_DIST_MAP_WEIGHT 1.0
 #define SM_DIST_LEVEL_WEIGHT 0.0
 
 typedef struct sm_distance_opts {
@@ -82,12 +86,13 @@ int sm_shape_distance_ex(const sm_shape *x, const sm_shape *y, const int32_t *T_
                          const int32_t *T_yx, const sm_distance_opts *o,
                          sm_distance_parts *out, sm_error *err);
 
-/* Adjusts matching options for a distance: both maps (want_yx), no tip search (it fires
+/* Adjusts matching options for a distance: the LB basis (above; a caller that was asked
+ * for another basis sets it back afterwards), both maps (want_yx), no tip search (it fires
  * on the low-confidence maps of pairs of different classes, at one match per hypothesis),
- * no bijective pass (about 40% more CPU per pair, for maps the shipped distance weighs 0),
- * and no mirror check (orientation_fix = 0). The check reruns the refinement from the map
- * composed with the target's self-symmetry when the map looks mirrored: up to a second
- * match, and it fires
+ * no bijective pass (about 40% more CPU per pair; the map term was chosen on maps made
+ * without it, and its median ignores the vertices it would fix), and no mirror check
+ * (orientation_fix = 0). The check reruns the refinement from the map composed with the
+ * target's self-symmetry when the map looks mirrored: up to a second match, and it fires
  * mostly on pairs of different classes, whose maps are poor either way. Measured on
  * tosca pairs (k = 50): within-class distances unchanged; cross-class ones moved by -13%
  * to +25%, all staying far above the within-class ones; 30-60% less time on those pairs.
@@ -96,8 +101,7 @@ int sm_shape_distance_ex(const sm_shape *x, const sm_shape *y, const int32_t *T_
 void sm_distance_match_opts(sm_match_opts *o);
 
 /* The shipped spectral term (spectrum_lb of sm_shape_distance with default options), from
- * the LB bases alone, no map needed: QUERY's prefilter. With the default map weight 0 it
- * is the shipped total, so the prefilter's ranking is the final one. */
+ * the LB bases alone, no map needed: QUERY's prefilter. */
 double sm_shape_spectral_term(const sm_shape *x, const sm_shape *y);
 
 /* 1 when the shipped total depends on the maps (default map weight > 0); 0 when it is

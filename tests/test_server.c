@@ -319,8 +319,10 @@ static int load_shapes(shape *x, shape *y) {
 }
 
 /* The reference: the same pipeline locally (bases k = K, SINGLE_START, want_yx). */
+/* The reference MATCH (its map, confidence and the distance of its map) or, with
+ * dist_only, the reference DISTANCE (sm_distance_match_opts: the maps a DISTANCE makes). */
 static void local_match(const shape *x, const shape *y, int32_t **map, sm_distance_parts *d,
-                        double *confidence) {
+                        double *confidence, int dist_only) {
   sm_shape_opts so;
   sm_shape_opts_default(&so);
   so.k_lb = so.k_elastic = K;
@@ -333,11 +335,14 @@ static void local_match(const shape *x, const shape *y, int32_t **map, sm_distan
   mo.k1 = K;
   mo.multi_start = 0;
   mo.want_yx = 1;
+  if (dist_only) sm_distance_match_opts(&mo);
   sm_match_result r;
   REQUIRE(sm_match(sx, sy, &mo, &r, &err) == 0);
-  *confidence = r.confidence;
-  *map = malloc((size_t)sx->mesh->n_input * 4);
-  sm_match_to_input(sx, sy, r.T, *map);
+  if (confidence) *confidence = r.confidence;
+  if (map) {
+    *map = malloc((size_t)sx->mesh->n_input * 4);
+    sm_match_to_input(sx, sy, r.T, *map);
+  }
   REQUIRE(sm_shape_distance(sx, sy, r.T, r.T_yx, d, &err) == 0);
   sm_match_result_free(&r);
   sm_shape_destroy(sx);
@@ -689,7 +694,9 @@ int main(void) {
   int32_t *ref_map = NULL;
   sm_distance_parts ref_d;
   double ref_conf;
-  local_match(&x, &y, &ref_map, &ref_d, &ref_conf);
+  local_match(&x, &y, &ref_map, &ref_d, &ref_conf, 0);
+  sm_distance_parts ref_dist; /* what DISTANCE returns */
+  local_match(&x, &y, NULL, &ref_dist, NULL, 1);
 
   /* ---------------- run 1 */
   int port = start_daemon("--metrics-port 0");
@@ -755,7 +762,8 @@ int main(void) {
     CHECK(f.h.status == 0);
     sm_proto_distance_resp r;
     if (!f.h.status && !sm_proto_dec_distance_resp(f.body, f.body_len, &r)) {
-      CHECK_NEAR(r.dist.total, ref_d.total, 1e-12);
+      CHECK_NEAR(r.dist.total, ref_dist.total, 1e-12);
+      CHECK_NEAR(r.dist.spectrum_lb, ref_d.spectrum_lb, 1e-12); /* the maps' basis aside */
       CHECK(r.dist.total >= 0 && r.dist.total <= 2);
     }
     frame_free(&f);

@@ -145,12 +145,12 @@ int main(int argc, char **argv) {
       const sm_shape *x = shapes[pl[q][0]], *y = shapes[pl[q][1]];
       sm_match_opts mo;
       sm_match_opts_default(&mo);
+      sm_distance_match_opts(&mo);
       mo.init = CONFIGS[c].init;
-      mo.basis = CONFIGS[c].basis;
+      mo.basis = CONFIGS[c].basis; /* each configuration's own basis */
       mo.k1 = k;
       if (mo.k0 > k) mo.k0 = k;
       mo.sinkhorn_levels = 0; /* as the suite's distance preset */
-      sm_distance_match_opts(&mo);
       sm_match_result r = {0};
       if (sm_match(x, y, &mo, &r, &err))
         return fprintf(stderr, "dist_dump: %s %s-%s: %s\n", CONFIGS[c].name, names[pl[q][0]],

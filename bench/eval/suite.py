@@ -42,10 +42,14 @@ PAIR_TITLES = {"homer": "homer A -> B", "head": "head A -> B", "lion": "lion -> 
 SWEEP_KS = [30, 50, 70, 90, 110, 130, 150]
 CONFIGS = ["nn+lb", "nn+elastic", "sinkhorn+lb", "sinkhorn+elastic", "sinkhorn+hybrid"]
 DEFAULT_CONFIG = "sinkhorn+elastic"
+# The distance's default (core/sm_distance.h, sm_distance_match_opts): Sinkhorn init, maps
+# refined in the LB basis, whose heat signatures the map term compares.
+DISTANCE_CONFIG = "sinkhorn+lb"
 HUMANS = {"david", "michael", "victoria"}
 # The terms of the distance (core/sm_distance.h), kept per pair for analysis.
 PARTS = ["point_xy", "point_yx", "spectrum_lb", "spectrum_elastic"]
-MAPS_SUFFIX = "+maps w=1"
+# The spectral term alone (map weight 0: the definition shipped before the map term study).
+SPECTRAL_ROW = "spectral term only (w=0)"
 
 # The shape distance used for retrieval and classification: the product's distance
 # (core/sm_distance.h) after a lighter refinement than a full match (k up to CLASSIFY_K,
@@ -54,11 +58,9 @@ MAPS_SUFFIX = "+maps w=1"
 CLASSIFY_K = 50
 SINKHORN_STEPS = 0
 # Robustness: 8 deformed queries x 39 gallery shapes per deformation, classified with the
-# default configuration (the shipped distance does not depend on the maps, map weight 0 in
-# core/sm_distance.h, so every configuration gives the same answers; --configs runs
-# others through DISTANCE) and ShapeDNA. The default configuration's distances come from
-# QUERY (Suite.query_distances), the product's lookup path. --deformations runs any other
-# set (e.g. stretch:1.1,...,stretch:1.5).
+# distance's default configuration (--configs runs others), its spectral term alone and
+# ShapeDNA; every pair through DISTANCE (BATCH). --deformations runs any other set (e.g.
+# stretch:1.1,...,stretch:1.5).
 DEFORMATIONS = [("stretch", 1.2), ("stretch", 1.4), ("bulge", 0.3), ("decimate", 0.4),
                 ("noise", 0.2)]
 
@@ -174,20 +176,6 @@ class Suite:
             log(f"  {tag}: {failed} of {len(pairs)} items failed: {r.stderr.strip()[:500]}")
         return dist, wall
 
-    def query_distances(self, qids, gids, owners):
-        """Distances of (query qids[vi], gallery gids[g]) for each owner (vi, g) through
-        QUERY's default mode, as a user's lookup gets them: one QUERY per query over every
-        stored shape (k = 1000, the daemon's max_query_k), the gallery's answers picked from
-        its ranking. With the shipped distance (no map term, sm_distance_uses_maps() = 0)
-        the default mode's ranking is the shipped distance itself and runs no match, so this
-        costs seconds where a DISTANCE per pair (maps computed, then unused) cost ~6 min."""
-        t0 = time.time()
-        by_query = {}
-        for vi in sorted({vi for vi, _ in owners}):
-            out = self.cli_run(["query", qids[vi], "-k", "1000", "--json"])
-            by_query[vi] = {h["id"]: h["distance"] for h in json.loads(out)}
-        return [by_query[vi].get(gids[g]) for vi, g in owners], time.time() - t0
-
     # ---- 1 + 2 + 4: pairs ---------------------------------------------------------------
     def eval_pairs_cmd(self, pair, ks, out, configs=None, visual=None, k_basis=None):
         cmd = [self.eval_pairs, "--pair", pair, "--ks", ",".join(map(str, ks)),
@@ -301,12 +289,10 @@ class Suite:
                                           "per_distance_s": wall / len(pairs),
                                           "parts": {k: P[m].tolist() for m, k in enumerate(PARTS)}}
                 log(f"  {cfg}: {len(pairs)} distances in {wall:.0f} s")
-            # The same maps with the map terms weighted in (map_weight 1 of sm_distance.h):
-            # what each configuration's maps would add to the spectral term.
-            for cfg in configs:
-                p = {k: np.array(v) for k, v in result["configs"][cfg]["parts"].items()}
-                D = (p["spectrum_lb"] + 0.5 * (p["point_xy"] + p["point_yx"])) / 2
-                result["configs"][f"{cfg} {MAPS_SUFFIX}"] = {"D": D.tolist()}
+            # The spectral term alone (the same for every configuration: no map in it).
+            ref = DISTANCE_CONFIG if DISTANCE_CONFIG in configs else configs[0]
+            result["configs"][SPECTRAL_ROW] = {
+                "D": result["configs"][ref]["parts"]["spectrum_lb"]}
         finally:
             self.stop_daemon()
         t1 = time.time()
@@ -327,7 +313,7 @@ class Suite:
         return [("stretch", 1.4)] if self.quick else DEFORMATIONS
 
     def robust(self, configs=None):
-        configs = configs or (self.configs if self.configs != CONFIGS else [DEFAULT_CONFIG])
+        configs = configs or (self.configs if self.configs != CONFIGS else [DISTANCE_CONFIG])
         if not os.path.isdir(TOSCA):
             log("robust: skipped (no ../shared/data)")
             return None
@@ -365,12 +351,14 @@ class Suite:
                         pairs.append((vid[vi], gid[g]))
                         owners.append((vi, g))
             for cfg in configs:
-                if cfg == DEFAULT_CONFIG and self.configs == CONFIGS:
-                    dist, wall = self.query_distances(vid, gid, owners)
-                else:
-                    dist, wall = self.batch(pairs, cfg, f"robust_{cfg}")
+                dist, wall = self.batch(pairs, cfg, f"robust_{cfg}")
                 result["configs"][cfg] = robust_scores(variants, owners, dist, labels, wall)
                 log(f"  {cfg}: {len(pairs)} distances in {wall:.0f} s")
+                if cfg == configs[0]:
+                    spec = [None if p is None else p[PARTS.index("spectrum_lb")]
+                            for p in self.last_parts]
+                    result["configs"][SPECTRAL_ROW] = robust_scores(variants, owners, spec,
+                                                                    labels, 0)
         finally:
             self.stop_daemon()
         sig_g = self.shapedna(list(files))
@@ -633,7 +621,7 @@ def plot_robust(out, result):
         xs = [s for k, s in result["deformations"] if k == kind]
         for cfg, r in result["configs"].items():
             ys = [r["accuracy"][f"{kind} {s}"] for s in xs]
-            style = dict(marker="o", ms=4, lw=2.2 if cfg == DEFAULT_CONFIG else 1.2)
+            style = dict(marker="o", ms=4, lw=2.2 if cfg == DISTANCE_CONFIG else 1.2)
             if cfg == "shapedna":
                 style.update(color="black", ls="--")
             if len(xs) > 1:
