@@ -1567,7 +1567,11 @@ static int cmd_distance(int argc, char **argv) {
   if (take_server(&argc, argv, &addr) || parse_match_args(argc, argv, &m)) return usage(stderr);
   if (addr) return remote_distance(addr, &m);
   sm_distance_match_opts(&m.mo);
-  if (m.co.basis) m.mo.basis = m.co.basis; /* --basis given: the distance uses it */
+  /* what the user asked for wins over the distance's preset */
+  if (m.co.basis) m.mo.basis = m.co.basis;
+  if (m.co.k1) m.mo.k1 = m.co.k1;
+  if (m.co.k0) m.mo.k0 = m.co.k0;
+  if (m.co.sinkhorn_levels >= 0) m.mo.sinkhorn_levels = m.co.sinkhorn_levels;
   m.ro.mode = SM_MULTIRES_OFF; /* the distance needs the full-resolution bases */
   int rc = run_match(&m, &mr);
   sm_distance_parts d;

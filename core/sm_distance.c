@@ -228,6 +228,9 @@ int sm_shape_distance(const sm_shape *x, const sm_shape *y, const int32_t *T_xy,
 
 void sm_distance_match_opts(sm_match_opts *o) {
   o->basis = SM_MATCH_LB;
+  if (o->k1 > SM_DIST_MATCH_K) o->k1 = SM_DIST_MATCH_K;
+  if (o->k0 > o->k1) o->k0 = o->k1;
+  o->sinkhorn_levels = 0;
   o->want_yx = 1;
   o->orientation_fix = 0;
   o->extremities = SM_EXT_OFF;

@@ -67,6 +67,7 @@ enum sm_distance_def {
   SM_DIST_PAPER = 1    /* the paper-style definition shipped before issue 11 (below) */
 };
 #define SM_DIST_MAP_WEIGHT 1.0
+#define SM_DIST_MATCH_K 50
 #define SM_DIST_LEVEL_WEIGHT 0.0
 
 typedef struct sm_distance_opts {
@@ -86,8 +87,11 @@ int sm_shape_distance_ex(const sm_shape *x, const sm_shape *y, const int32_t *T_
                          const int32_t *T_yx, const sm_distance_opts *o,
                          sm_distance_parts *out, sm_error *err);
 
-/* Adjusts matching options for a distance: the LB basis (above; a caller that was asked
- * for another basis sets it back afterwards), both maps (want_yx), no tip search (it fires
+/* Adjusts matching options for a distance: the LB basis (above), the refinement up to
+ * k1 = SM_DIST_MATCH_K = 50 without soft Sinkhorn steps (sinkhorn_levels = 0): the maps
+ * the map term was chosen on, at a third of a default match's time (0.3-0.5 s a 5k pair
+ * on one thread); a caller asked for other values (basis, k, Sinkhorn steps) applies them
+ * afterwards. Also both maps (want_yx), no tip search (it fires
  * on the low-confidence maps of pairs of different classes, at one match per hypothesis),
  * no bijective pass (about 40% more CPU per pair; the map term was chosen on maps made
  * without it, and its median ignores the vertices it would fix), and no mirror check

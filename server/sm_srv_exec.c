@@ -340,12 +340,14 @@ static int op_prepare(sm_job *j, const uint8_t *p, size_t n, result *r) {
 
 /* ------------------------------------------------------------------ MATCH / DISTANCE */
 
-/* Options and bases key from a MATCH/DISTANCE request. */
-static int match_opts(sm_job *j, const sm_proto_match_req *q, sm_match_opts *mo,
-                      sm_store_key *key, result *r) {
+/* Options and bases key from a MATCH/DISTANCE request: the defaults (a DISTANCE's:
+ * sm_distance_match_opts), then what the request sets. */
+static int match_opts(sm_job *j, uint8_t opcode, const sm_proto_match_req *q,
+                      sm_match_opts *mo, sm_store_key *key, result *r) {
   const sm_srv_config *cfg = &j->srv->cfg;
   sm_match_opts_default(mo);
   mo->k1 = cfg->default_k < mo->k1 ? cfg->default_k : mo->k1; /* server default k1 */
+  if (opcode == SM_OP_DISTANCE) sm_distance_match_opts(mo); /* MATCH keeps its mirror check */
   if (q->basis) mo->basis = q->basis;
   if (q->init) mo->init = q->init;
   if (q->k0) mo->k0 = q->k0;
@@ -606,13 +608,9 @@ static int op_match(sm_job *j, uint8_t opcode, const uint8_t *p, size_t n, resul
   if (q.deadline_ms) j->deadline_ns = j->recv_ns + (uint64_t)q.deadline_ms * 1000000ull;
   sm_match_opts mo;
   sm_store_key key;
-  if (match_opts(j, &q, &mo, &key, r)) return -1;
+  if (match_opts(j, opcode, &q, &mo, &key, r)) return -1;
   int want_dist = opcode == SM_OP_DISTANCE || (q.flags & SM_MATCH_F_WANT_DISTANCE);
   mo.want_yx = want_dist || (q.flags & SM_MATCH_F_WANT_YX);
-  if (opcode == SM_OP_DISTANCE) { /* MATCH keeps its mirror check and its basis */
-    sm_distance_match_opts(&mo);
-    if (q.basis) mo.basis = q.basis; /* a basis the client asked for */
-  }
   int multires = 0;
   if (opcode == SM_OP_MATCH && multires_choice(j, &q, &multires, r)) return -1;
   if (multires) key = sm_store_key_multires(&key, j->srv->cfg.multires_coarse_nv);

