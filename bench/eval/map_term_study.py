@@ -31,7 +31,6 @@ spectral_study's: run it first, or this script makes them the same way). Writes
 OUT/map_term_study.json and prints the table.
 """
 import argparse
-import glob
 import json
 import os
 import subprocess
@@ -41,6 +40,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import suite  # noqa: E402
+import dist_study  # noqa: E402
 import spectral_study  # noqa: E402
 
 T8 = 10.0 ** (-3 + 2 * np.arange(8) / 7)
@@ -64,20 +64,8 @@ def load_shape(d, name):
 
 
 def load_maps(d, cfg):
-    recs = {}
-    for path in sorted(glob.glob(os.path.join(d, f"{cfg}.part*.bin"))):
-        with open(path, "rb") as f:
-            while True:
-                h = np.fromfile(f, np.int32, 5)
-                if len(h) < 5:
-                    break
-                i, j, nx, ny, kc = (int(v) for v in h)
-                Txy, Tyx = np.fromfile(f, np.int32, nx), np.fromfile(f, np.int32, ny)
-                np.fromfile(f, np.float64, kc * kc)
-                if len(np.fromfile(f, np.float64, 3)) < 3:
-                    break
-                recs[(i, j)] = (Txy, Tyx)
-    return recs
+    """(i, j) -> (T_xy, T_yx), dist_dump's records (dist_study.load_pairs)."""
+    return {p: rec[:2] for p, rec in dist_study.load_pairs(d, cfg).items()}
 
 
 def wquantile(r, m, q):
