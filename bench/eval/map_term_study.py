@@ -75,7 +75,8 @@ def wquantile(r, m, q):
 
 
 def pair_terms(a, b, Txy, Tyx):
-    t = {"S": spectral_study.spectral(a["ev"], b["ev"], 70, 0.0)}
+    t = {"S": spectral_study.spectral(a["ev"], b["ev"], 70, 0.0),
+         "shapedna": spectral_study.shapedna(a["ev"], b["ev"])}
     for key in ("H", "Hc"):
         for tn, sl in TIMES.items():
             rx = np.sqrt(((a[key][:, sl] - b[key][Txy, sl]) ** 2).mean(1))
@@ -170,7 +171,7 @@ def main():
     res = {"deformations": kinds, "configs": {}}
     for cfg in cfgs:
         T = {p: pair_terms(F[p[0]], F[p[1]], *m) for p, m in load_maps(dd, cfg).items()}
-        res["configs"][cfg] = score_rows(T, labels, qs, kinds, F)
+        res["configs"][cfg] = score_rows(T, labels, qs, kinds)
     with open(os.path.join(a.out, "map_term_study.json"), "w") as f:
         json.dump(res, f, indent=1)
     for cfg, rows in res["configs"].items():
@@ -184,7 +185,7 @@ def main():
     return 0
 
 
-def score_rows(T, labels, qs, kinds, F):
+def score_rows(T, labels, qs, kinds):
     iu = list(zip(*np.triu_indices(40, 1)))
     sq = lambda s: 1.0 - np.exp(-s)  # noqa: E731  (the product's squash)
 
@@ -206,10 +207,9 @@ def score_rows(T, labels, qs, kinds, F):
                 "split_70_30": k8["split_70_30"]["accuracy"],
                 "f1_70_30": k8["split_70_30"]["f1"], "map": r["map"], **right}
 
-    ev = {i: F[i]["ev"] for i in F}
-    rows = {"shapedna": shapedna_row(ev, labels, qs, kinds)}
+    rows = {"shapedna": score(lambda t: t["shapedna"])}
     rows["S (shipped)"] = score(lambda t: sq(t["S"]))
-    keys = [k for k in next(iter(T.values())) if k != "S"]
+    keys = [k for k in next(iter(T.values())) if k not in ("S", "shapedna")]
     for k in keys:
         rows[f"{k} alone"] = score(lambda t: t[k])
         for w in WEIGHTS:
@@ -221,20 +221,6 @@ def score_rows(T, labels, qs, kinds, F):
             r[c] >= ref[c] for c in cols) and all(r["A"][k] >= ref["A"][k] for k in kinds)
         r["B_ok"] = all(r["B"][k] >= max(ref["B"][k], dna["B"][k]) for k in kinds)
     return rows
-
-
-def shapedna_row(ev, labels, qs, kinds):
-    """ShapeDNA's row on the same 40 shapes and queries (its own function of two spectra)."""
-    D = np.array([[spectral_study.shapedna(ev[i], ev[j]) if i != j else 0 for j in range(40)]
-                  for i in range(40)])
-    k8, r = suite.knn_scores(D, labels[:40]), suite.retrieval_scores(D, labels[:40])
-    right = {"A": dict.fromkeys(kinds, 0), "B": dict.fromkeys(kinds, 0)}
-    for i, q, rank, kind in qs:
-        d = [spectral_study.shapedna(ev[i], ev[g]) if g != q else np.inf for g in range(40)]
-        right["A" if rank == 0 else "B"][kind] += int(labels[int(np.argmin(d))] == labels[q])
-    return {"loo": k8["loo"]["accuracy"], "split_80_20": k8["split_80_20"]["accuracy"],
-            "f1_80_20": k8["split_80_20"]["f1"], "split_70_30": k8["split_70_30"]["accuracy"],
-            "f1_70_30": k8["split_70_30"]["f1"], "map": r["map"], **right}
 
 
 if __name__ == "__main__":
