@@ -231,6 +231,7 @@ void sm_distance_match_opts(sm_match_opts *o) {
   if (o->k1 > SM_DIST_MATCH_K) o->k1 = SM_DIST_MATCH_K;
   if (o->k0 > o->k1) o->k0 = o->k1;
   o->sinkhorn_levels = 0;
+  o->init_samples = 1;
   o->want_yx = 1;
   o->orientation_fix = 0;
   o->extremities = SM_EXT_OFF;

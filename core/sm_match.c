@@ -411,10 +411,11 @@ static int soft_fmap(const sm_basis *bx, const sm_basis *by, const sm_plan *plan
  * when the plan was first turned into a hard map (row argmax or greedy bijective
  * extraction), whose scattered mistakes ZoomOut could not undo. */
 static int soft_pullback_map(const sm_shape *x, const sm_shape *y, const sm_match_opts *o,
-                             const sm_plan *plan, int k, int32_t *T, sm_error *err) {
+                             const sm_plan *plan, const soft_rows *rows, int k, int32_t *T,
+                             sm_error *err) {
   double *C = malloc((size_t)k * k * sizeof *C);
   if (!C) return sm_error_set(err, SM_ENOMEM, "init: out of memory");
-  int rc = soft_fmap(x->lb, y->lb, plan, &soft_all, k, o->threads, C, err);
+  int rc = soft_fmap(x->lb, y->lb, plan, rows, k, o->threads, C, err);
   sm_fmap_pair pair = {x->lb, y->lb, k, k, 1.0};
   const double *Cs[1] = {C};
   sm_knn_opts ko = match_knn(o);
@@ -489,10 +490,22 @@ static int embed_sinkhorn(const sm_basis *bx, const sm_basis *by, const soft_row
   return rc;
 }
 
+/* The soft steps' rows: the refinement's farthest-point samples of both shapes (cell
+ * masses as marginals) when both have them cached, else every vertex. */
+static soft_rows sample_rows(const sm_shape *x, const sm_shape *y, const sm_match_opts *o) {
+  soft_rows rows = soft_all;
+  shape_fps(x, o->samples, &rows.Sx, &rows.wx);
+  shape_fps(y, o->samples, &rows.Sy, &rows.wy);
+  if (rows.Sx && rows.Sy) rows.nsx = rows.nsy = o->samples;
+  else rows = soft_all;
+  return rows;
+}
+
 /* Initial point map from the coarse C: nearest neighbour between the aligned embeddings,
  * or the sparse Sinkhorn plan between them (masses = vertex areas) read as a soft
- * correspondence (soft_pullback_map). On every vertex: on samples, the lion -> cat pair
- * went from 0.033 to 0.056 mean geodesic error (bench_match, 2026-11-29). */
+ * correspondence (soft_pullback_map), the map itself on every vertex. The plan on every
+ * vertex by default: on samples, the lion -> cat pair went from 0.033 to 0.056 mean
+ * geodesic error (bench_match, 2026-11-29); o->init_samples puts it on the samples. */
 static int initial_map(const sm_shape *x, const sm_shape *y, const sm_match_opts *o,
                        const double *C, int32_t *T, sm_error *err) {
   int k = o->coarse_k;
@@ -503,8 +516,9 @@ static int initial_map(const sm_shape *x, const sm_shape *y, const sm_match_opts
     return sm_fmap_to_p2p(&p, 1, Cs, T, NULL, &ko, err);
   }
   sm_plan *plan = NULL;
-  int rc = embed_sinkhorn(x->lb, y->lb, &soft_all, k, C, o, &plan, err);
-  if (!rc) rc = soft_pullback_map(x, y, o, plan, k, T, err);
+  soft_rows rows = o->init_samples ? sample_rows(x, y, o) : soft_all;
+  int rc = embed_sinkhorn(x->lb, y->lb, &rows, k, C, o, &plan, err);
+  if (!rc) rc = soft_pullback_map(x, y, o, plan, &rows, k, T, err);
   sm_plan_destroy(plan);
   return rc;
 }
@@ -526,11 +540,7 @@ static int sinkhorn_levels(const sm_shape *x, const sm_shape *y, const sm_match_
   const sm_basis *bx = o->basis == SM_MATCH_LB ? x->lb : x->elastic;
   const sm_basis *by = o->basis == SM_MATCH_LB ? y->lb : y->elastic;
   int L = o->sinkhorn_levels, k = o->k0;
-  soft_rows rows = soft_all;
-  shape_fps(x, o->samples, &rows.Sx, &rows.wx);
-  shape_fps(y, o->samples, &rows.Sy, &rows.wy);
-  if (rows.Sx && rows.Sy) rows.nsx = rows.nsy = o->samples;
-  else rows = soft_all;
+  soft_rows rows = sample_rows(x, y, o);
   double *C = malloc((size_t)o->k1 * o->k1 * sizeof *C);
   if (!C) return sm_error_set(err, SM_ENOMEM, "sinkhorn refinement: out of memory");
   int rc = sm_fmap_from_p2p(bx, by, k, T, C, err);

@@ -8,7 +8,8 @@
  * many definitions without matching again.
  *
  *   dist_dump --list SHAPES --out DIR [--pairs PAIRS] [--configs nn+lb,...] [-k K]
- *             [--cache DIR] [--part P/N] [--shapes-only]
+ *             [--cache DIR] [--part P/N] [--shapes-only] [--k0 K0] [--step S]
+ *             [--samples N] [--init-samples] [--tag T]
  *
  * SHAPES: lines "name path". PAIRS: lines "i j" (0-based rows of SHAPES). Writes
  *   DIR/shape_NAME.bin   int32 n, nf, k_lb, k_el; double V[3n], int32 F[3nf],
@@ -17,6 +18,9 @@
  *   DIR/CONFIG.partP.bin records: int32 i, j, nx, ny, kC; int32 T_xy[nx], T_yx[ny];
  *                        double C[kC kC], dirichlet, orientation, confidence
  * --part P/N keeps the pairs whose row index is P mod N, so N processes share a list.
+ * --k0, --step, --samples change the refinement schedule from the preset's, --init-samples
+ * sets sm_match_opts.init_samples (cheaper maps for a study); --tag T names the records CONFIG.T.partP.bin. Prints the medians of the
+ * pairs' initial-map, refinement and total times.
  */
 #define _POSIX_C_SOURCE 200809L
 #include <cblas.h>
@@ -76,7 +80,9 @@ static int write_shape(const char *dir, const char *name, const sm_shape *s) {
 
 int main(int argc, char **argv) {
   const char *list = NULL, *pairs = NULL, *out = NULL, *cache = "dist-cache", *cfgs = "nn+lb";
-  int k = 50, part = 0, nparts = 1, shapes_only = 0;
+  const char *tag = NULL;
+  int k = 50, part = 0, nparts = 1, shapes_only = 0, k0 = 0, step = 0, samples = 0;
+  int init_samples = 0;
   for (int i = 1; i < argc; i++) {
     int more = i + 1 < argc;
     if (!strcmp(argv[i], "--list") && more) list = argv[++i];
@@ -88,6 +94,11 @@ int main(int argc, char **argv) {
     else if (!strcmp(argv[i], "--part") && more) {
       if (sscanf(argv[++i], "%d/%d", &part, &nparts) != 2 || nparts < 1) return 2;
     } else if (!strcmp(argv[i], "--shapes-only")) shapes_only = 1;
+    else if (!strcmp(argv[i], "--k0") && more) k0 = atoi(argv[++i]);
+    else if (!strcmp(argv[i], "--step") && more) step = atoi(argv[++i]);
+    else if (!strcmp(argv[i], "--samples") && more) samples = atoi(argv[++i]);
+    else if (!strcmp(argv[i], "--init-samples")) init_samples = 1;
+    else if (!strcmp(argv[i], "--tag") && more) tag = argv[++i];
     else return fprintf(stderr, "dist_dump: unexpected '%s'\n", argv[i]), 2;
   }
   if (!list || !out) return fprintf(stderr, "dist_dump --list SHAPES --out DIR ...\n"), 2;
@@ -136,10 +147,14 @@ int main(int argc, char **argv) {
     snprintf(key, sizeof key, ",%s,", CONFIGS[c].name);
     if (!strstr(buf, key)) continue;
     char p[4096];
-    snprintf(p, sizeof p, "%s/%s.part%d.bin", out, CONFIGS[c].name, part);
+    if (tag) snprintf(p, sizeof p, "%s/%s.%s.part%d.bin", out, CONFIGS[c].name, tag, part);
+    else snprintf(p, sizeof p, "%s/%s.part%d.bin", out, CONFIGS[c].name, part);
     FILE *o = fopen(p, "wb");
     if (!o) return perror(p), 1;
     double t0 = sm_now();
+    int nt = 0;
+    double *tt = malloc(3 * (size_t)(npairs ? npairs : 1) * sizeof *tt);
+    if (!tt) return fprintf(stderr, "dist_dump: out of memory\n"), 1;
     for (int q = 0; q < npairs; q++) {
       if (q % nparts != part) continue;
       const sm_shape *x = shapes[pl[q][0]], *y = shapes[pl[q][1]];
@@ -151,7 +166,12 @@ int main(int argc, char **argv) {
       mo.k1 = k;
       if (mo.k0 > k) mo.k0 = k;
       mo.sinkhorn_levels = 0; /* as the suite's distance preset */
+      if (k0 > 0) mo.k0 = k0 < k ? k0 : k;
+      if (step > 0) mo.step = step;
+      if (samples > 0) mo.samples = samples;
+      if (init_samples) mo.init_samples = 1;
       sm_match_result r = {0};
+      double tq = sm_now();
       if (sm_match(x, y, &mo, &r, &err))
         return fprintf(stderr, "dist_dump: %s %s-%s: %s\n", CONFIGS[c].name, names[pl[q][0]],
                        names[pl[q][1]], err.msg), 1;
@@ -162,11 +182,15 @@ int main(int argc, char **argv) {
       fwrite(r.C, sizeof(double), (size_t)r.kC * r.kC, o);
       double tail[3] = {r.dirichlet, r.orientation, r.confidence};
       fwrite(tail, sizeof(double), 3, o);
+      tt[nt] = r.t_init, tt[npairs + nt] = r.t_refine, tt[2 * npairs + nt] = sm_now() - tq;
+      nt++;
       sm_match_result_free(&r);
     }
     if (fclose(o)) return perror(p), 1;
-    fprintf(stderr, "dist_dump: %s part %d/%d: %.0f s\n", CONFIGS[c].name, part, nparts,
-            sm_now() - t0);
+    fprintf(stderr, "dist_dump: %s part %d/%d: %.0f s; median per pair: init %.3f s, "
+            "refinement %.3f s, match %.3f s\n", CONFIGS[c].name, part, nparts, sm_now() - t0,
+            median(tt, nt), median(tt + npairs, nt), median(tt + 2 * npairs, nt));
+    free(tt);
   }
   for (int s = 0; s < ns; s++) sm_shape_destroy(shapes[s]);
   free(pl);

@@ -47,6 +47,8 @@ T8 = 10.0 ** (-3 + 2 * np.arange(8) / 7)
 TIMES = {"all": slice(0, 8), "small": slice(0, 4), "large": slice(4, 8)}
 STATS = ("mean", "q0.5", "q0.25")
 WEIGHTS = (0.5, 1.0, 2.0)
+# Map variants (--configs CONFIG.TAG): dist_dump's options beside the distance preset.
+VARIANTS = {"samples": ["--init-samples"]}
 
 
 def load_shape(d, name):
@@ -133,22 +135,31 @@ def dump(build, work, L, qs, cfgs):
     tool = os.path.join(build, "bench", "eval", "dist_dump")
     missing = [c for c in cfgs if len(load_maps(dd, c)) < len(pairs)]
     if missing:
+        dump_shapes(tool, dd, work, L, lst)
+    for tag in dict.fromkeys(c.partition(".")[2] for c in missing):
+        bases = [c.partition(".")[0] for c in missing if c.partition(".")[2] == tag]
+        extra = ["--tag", tag] + VARIANTS[tag] if tag else []
         env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
         base = [tool, "--list", lst, "--out", dd, "--cache", os.path.join(work, "cache")]
-        # bases first, half the shapes per process, then the pairs in two parts
-        halves = [os.path.join(dd, f"half{h}.txt") for h in (0, 1)]
-        for h, path in enumerate(halves):
-            with open(path, "w") as f:
-                f.writelines(f"{n} {os.path.abspath(p)}\n" for n, p in L[h::2])
-        ps = [subprocess.Popen(base[:2] + [p] + base[3:] + ["--shapes-only"], env=env)
-              for p in halves]
-        if any(p.wait() for p in ps):
-            raise RuntimeError("dist_dump --shapes-only failed")
-        ps = [subprocess.Popen(base + ["--pairs", prs, "--configs", ",".join(missing),
-                                       "--part", f"{p}/2"], env=env) for p in (0, 1)]
+        ps = [subprocess.Popen(base + ["--pairs", prs, "--configs", ",".join(bases),
+                                       "--part", f"{p}/2"] + extra, env=env) for p in (0, 1)]
         if any(p.wait() for p in ps):
             raise RuntimeError("dist_dump failed")
     return dd
+
+
+def dump_shapes(tool, dd, work, L, lst):
+    """The shapes' records and bases, half the shapes per process."""
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
+    halves = [os.path.join(dd, f"half{h}.txt") for h in (0, 1)]
+    for h, path in enumerate(halves):
+        with open(path, "w") as f:
+            f.writelines(f"{n} {os.path.abspath(p)}\n" for n, p in L[h::2])
+    ps = [subprocess.Popen([tool, "--list", p, "--out", dd, "--cache",
+                            os.path.join(work, "cache"), "--shapes-only"], env=env)
+          for p in halves]
+    if any(p.wait() for p in ps):
+        raise RuntimeError("dist_dump --shapes-only failed")
 
 
 def main():
@@ -157,7 +168,9 @@ def main():
     ap.add_argument("--build", default=os.path.join(suite.ROOT, "build"))
     ap.add_argument("--work", default=os.path.join(suite.ROOT, "out", "spectral-study"))
     ap.add_argument("--out", default=os.path.join(suite.ROOT, "docs", "eval"))
-    ap.add_argument("--configs", default="sinkhorn+lb")
+    ap.add_argument("--configs", default="sinkhorn+lb",
+                    help="comma list of CONFIG or CONFIG.TAG, TAG one of "
+                    f"{', '.join(VARIANTS)} (a variant of the preset's maps)")
     a = ap.parse_args()
     if not os.path.isdir(suite.TOSCA):
         print("map_term_study: skipped (no ../shared/data)")
@@ -168,13 +181,17 @@ def main():
     dd = dump(build, work, L, qs, cfgs)
     kinds = [f"{k} {st}" for k, st in suite.DEFORMATIONS]
     F = {i: load_shape(dd, L[i][0]) for i in range(len(L))}
-    res = {"deformations": kinds, "configs": {}}
+    # Rows of other map variants scored before (same script, same sets) are kept.
+    path = os.path.join(a.out, "map_term_study.json")
+    old = json.load(open(path)) if os.path.exists(path) else {}
+    res = {"deformations": kinds, "configs": old.get("configs", {})}
     for cfg in cfgs:
         T = {p: pair_terms(F[p[0]], F[p[1]], *m) for p, m in load_maps(dd, cfg).items()}
         res["configs"][cfg] = score_rows(T, labels, qs, kinds)
-    with open(os.path.join(a.out, "map_term_study.json"), "w") as f:
+    with open(path, "w") as f:
         json.dump(res, f, indent=1)
-    for cfg, rows in res["configs"].items():
+    for cfg in cfgs:
+        rows = res["configs"][cfg]
         print(f"{cfg}: {'':24s} LOO   80/20       70/30       mAP   | A | B")
         for name, r in rows.items():
             print(f"{name:30s} {r['loo']:.3f} {r['split_80_20']:.3f}/{r['f1_80_20']:.3f} "
