@@ -32,8 +32,8 @@
  *   queries (6 -> 7 of 8); on 160 held-out deformed queries it is right for 152 (S alone
  *   143, ShapeDNA 133), never fewer than S for a deformation. With the preset's maps now
  *   (the start on samples, below): 70/30 0.972, mAP 0.969, the 1.4x stretched queries
- *   6 -> 7 of 8, the held-out 152. The raw (not centered), all-times, larger-times, mean and quartile
- *   variants and w = 0.5, 2 were measured too (the table in RESULTS.md).
+ *   6 -> 7 of 8, the held-out 152. The raw (not centered), all-times, larger-times, mean
+ *   and quartile variants and w = 0.5, 2 were measured too (the table in RESULTS.md).
  *   spectrum_elastic = -1 (the elastic spectrum separated the classes worse: 0.75 LOO).
  *   The maps are the LB basis' (sm_distance_match_opts): the term compares LB heat
  *   signatures, which a map refined in that basis aligns; the elastic basis' maps weighted
@@ -93,13 +93,14 @@ int sm_shape_distance_ex(const sm_shape *x, const sm_shape *y, const int32_t *T_
  * k1 = SM_DIST_MATCH_K = 50 without soft Sinkhorn steps (sinkhorn_levels = 0), and the
  * Sinkhorn start's transport on the refinement's 2,000 farthest-point samples
  * (init_samples = 1; its map still on every vertex). The samples halve the start (median
- * over 28 tosca 5k pairs, one thread: 0.164 -> 0.077 s; the whole match 0.253 -> 0.168 s) and
- * the distance stays as good: map_term_study on those maps, the same definition: LOO
- * 0.975, 80/20 0.975 / 0.967, mAP 0.968 -> 0.969, the suite's deformed queries 7 6 7 7 6
- * -> 7 7 7 7 6 (stretch 1.4 gains one), the 160 held-out ones 152 -> 152, 70/30
- * 0.975 / 0.973 -> 0.972 / 0.970 (one human query in a few of the random splits); the
- * nearest-neighbour start measured the same (0.972 on 70/30, 152) at 0.123 s. A caller
- * who asked for other values (basis, init, k, Sinkhorn steps) applies them afterwards. Also both maps (want_yx), no tip search (it fires
+ * over 28 tosca 5k pairs, one thread: 0.164 -> 0.077 s; the whole match 0.253 -> 0.168
+ * s) and the distance stays as good: map_term_study on those maps, the same definition:
+ * LOO 0.975, 80/20 0.975 / 0.967, mAP 0.968 -> 0.969, the suite's deformed queries
+ * 7 6 7 7 6 -> 7 7 7 7 6 (stretch 1.4 gains one), the 160 held-out ones 152 -> 152,
+ * 70/30 0.975 / 0.973 -> 0.972 / 0.970 (one human query in a few of the random splits);
+ * the nearest-neighbour start measured the same (0.972 on 70/30, 152) at 0.123 s. A
+ * caller who asked for other values (basis, init, k, Sinkhorn steps) applies them
+ * afterwards. Also both maps (want_yx), no tip search (it fires
  * on the low-confidence maps of pairs of different classes, at one match per hypothesis),
  * no bijective pass (about 40% more CPU per pair; the map term was chosen on maps made
  * without it, and its median ignores the vertices it would fix), and no mirror check

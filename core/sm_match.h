@@ -136,8 +136,9 @@ typedef struct sm_match_opts {
                           plan (soft) before the hard ZoomOut; 0 = off (default 2) */
   int samples;      /* farthest-point samples for intermediate refinement iterations */
   int init_samples; /* 1: the Sinkhorn start's transport on those samples (cell masses as
-                       marginals), its map still on every vertex; 0 (default): on every
-                       vertex */
+                       marginals; every vertex when a shape has no cached samples or no
+                       more vertices than samples), its map still on every vertex; 0
+                       (default): on every vertex */
   double bijective; /* the bijective pass's weight (see above); default 1, 0 = off */
   int final_hybrid; /* 1 (default): with the elastic basis, the bijective pass refines in
                        the hybrid basis (LB functions beside the elastic ones) */

@@ -19,8 +19,8 @@
  *                        double C[kC kC], dirichlet, orientation, confidence
  * --part P/N keeps the pairs whose row index is P mod N, so N processes share a list.
  * --k0, --step, --samples change the refinement schedule from the preset's, --init-samples
- * sets sm_match_opts.init_samples (cheaper maps for a study); --tag T names the records CONFIG.T.partP.bin. Prints the medians of the
- * pairs' initial-map, refinement and total times.
+ * sets sm_match_opts.init_samples (cheaper maps for a study); --tag T names the records
+ * CONFIG.T.partP.bin. Prints the medians of the pairs' start, refinement and match times.
  */
 #define _POSIX_C_SOURCE 200809L
 #include <cblas.h>

@@ -183,7 +183,8 @@ def main():
             spec = [h for h, _ in query(d, sids[q], "spectral", len(files))[1]]
             ranked.append((spec, hits))
             log(f"full query {len(full_lat)}/{a.full}: {t:.0f} s")
-        res["shortlists"] = shortlist_scores(ranked)
+        if ranked:
+            res["shortlists"] = shortlist_scores(ranked)
         if full_lat:
             res["modes"]["full"] = {"queries": len(full_lat), "p50_s": pct(full_lat, 50),
                                     "p90_s": pct(full_lat, 90), "max_s": max(full_lat)}
